@@ -1,0 +1,172 @@
+"""The conventions of mona-vo, stated once. Every reader, writer and algorithm goes through here.
+
+Poses
+    ``T_world_cam``: 4x4 float64 camera-to-world matrix. A point in camera coordinates maps to the
+    world by ``X_world = T[:3, :3] @ X_cam + T[:3, 3]``; ``T[:3, 3]`` is the camera centre in the
+    world. World-to-camera matrices (Sintel ``.cam`` files, OpenCV ``rvec/tvec``) are named
+    ``T_cam_world`` and converted with :func:`invert_pose` at the file boundary.
+
+Camera frame
+    OpenCV's: x right, y down, z forward (optical axis). Depth means z in this frame.
+
+Quaternions
+    ``quat_wxyz`` (scalar first) inside mona-vo, unit norm, sign chosen so that w >= 0.
+    TUM files store ``qx qy qz qw`` (scalar last); only :func:`tum_row` and
+    :func:`pose_from_tum_row` touch that order.
+
+Intrinsics
+    Pinhole ``fx, fy, cx, cy`` in pixels (:class:`Intrinsics`), one per frame allowed.
+
+Pixels
+    Pixel centres sit at integer coordinates: the centre of the top-left pixel is (0, 0), so an image
+    of width w spans x in [-0.5, w - 0.5]. Pixel coordinates are ``(x, y)`` = (column, row) float
+    arrays of shape (N, 2); images are indexed ``image[row, col]``. This is OpenCV's convention, so
+    ``cv2.remap``, ``calcOpticalFlowPyrLK`` and ``solvePnP`` take these coordinates unchanged.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 float64 pose from a 3x3 rotation and a 3-vector translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (``T_a_b`` -> ``T_b_a``), exact for rotations."""
+    R = T[:3, :3]
+    t = T[:3, 3]
+    Ti = np.eye(4)
+    Ti[:3, :3] = R.T
+    Ti[:3, 3] = -R.T @ t
+    return Ti
+
+
+def relative_pose(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
+    """``T_a_b``: pose of camera b in camera a's frame."""
+    return invert_pose(T_world_a) @ T_world_b
+
+
+def is_rigid(T: np.ndarray, tol: float = 1e-6) -> bool:
+    """True when T is a finite 4x4 rigid transform (orthonormal, det +1, last row 0 0 0 1)."""
+    T = np.asarray(T)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return (np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
+            and np.allclose(T[3], [0, 0, 0, 1], atol=tol))
+
+
+def quat_wxyz_from_rotation(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (4,) float64 w, x, y, z with w >= 0 from a 3x3 rotation matrix."""
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    q = np.array([w, x, y, z])
+    return -q if q[0] < 0 else q
+
+
+def rotation_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
+    """3x3 rotation from a quaternion w, x, y, z (normalised first; any non-zero norm is accepted)."""
+    w, x, y, z = np.asarray(q_wxyz, dtype=np.float64)
+    return Rotation.from_quat([x, y, z, w]).as_matrix()
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees, in [0, 180]."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def tum_row(timestamp: float, T_world_cam: np.ndarray) -> tuple[float, ...]:
+    """One TUM trajectory line as numbers: ``timestamp tx ty tz qx qy qz qw`` (scalar last)."""
+    w, x, y, z = quat_wxyz_from_rotation(T_world_cam[:3, :3])
+    tx, ty, tz = T_world_cam[:3, 3]
+    return (float(timestamp), tx, ty, tz, x, y, z, w)
+
+
+def pose_from_tum_row(row) -> tuple[float, np.ndarray]:
+    """Inverse of :func:`tum_row`: (timestamp, T_world_cam) from 8 numbers."""
+    row = np.asarray(row, dtype=np.float64)
+    t, tx, ty, tz, qx, qy, qz, qw = row
+    return float(t), make_pose(rotation_from_quat_wxyz([qw, qx, qy, qz]), [tx, ty, tz])
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels; principal point in the integer-centre pixel convention."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 float64 calibration matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @classmethod
+    def from_K(cls, K: np.ndarray) -> "Intrinsics":
+        K = np.asarray(K, dtype=np.float64)
+        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+
+    @classmethod
+    def default_for(cls, width: int, height: int, fov_deg: float = 60.0) -> "Intrinsics":
+        """A focal guess for uncalibrated video: horizontal field of view ``fov_deg`` (typical of
+        phone and action cameras), principal point at the image centre."""
+        f = 0.5 * width / np.tan(np.radians(fov_deg) / 2.0)
+        return cls(f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+
+    def scaled(self, sx: float, sy: float | None = None) -> "Intrinsics":
+        """Intrinsics of the image resized by (sx, sy), keeping pixel centres at integers."""
+        sy = sx if sy is None else sy
+        return Intrinsics(self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5,
+                          (self.cy + 0.5) * sy - 0.5)
+
+    def check(self, width: int | None = None, height: int | None = None) -> list[str]:
+        """Problems with these intrinsics (empty when they are usable)."""
+        problems = []
+        vals = (self.fx, self.fy, self.cx, self.cy)
+        if not all(np.isfinite(v) for v in vals):
+            problems.append("intrinsics are not finite numbers")
+            return problems
+        if self.fx <= 0 or self.fy <= 0:
+            problems.append(f"focal length must be positive (fx={self.fx:g}, fy={self.fy:g})")
+        if width is not None and not -0.5 <= self.cx <= width - 0.5:
+            problems.append(f"principal point cx={self.cx:g} is outside the image width {width}")
+        if height is not None and not -0.5 <= self.cy <= height - 0.5:
+            problems.append(f"principal point cy={self.cy:g} is outside the image height {height}")
+        return problems
+
+
+def project(points_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Pixels (N, 2) float64 x, y of camera-frame points (N, 3); z must be positive."""
+    p = np.asarray(points_cam, dtype=np.float64)
+    z = p[:, 2]
+    return np.stack([intr.fx * p[:, 0] / z + intr.cx, intr.fy * p[:, 1] / z + intr.cy], axis=1)
+
+
+def unproject(pixels: np.ndarray, depth: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Camera-frame points (N, 3) of pixels (N, 2) x, y at z-depths (N,)."""
+    px = np.asarray(pixels, dtype=np.float64)
+    d = np.asarray(depth, dtype=np.float64)
+    x = (px[:, 0] - intr.cx) / intr.fx * d
+    y = (px[:, 1] - intr.cy) / intr.fy * d
+    return np.stack([x, y, d], axis=1)
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (N, 3) points."""
+    return np.asarray(points) @ T[:3, :3].T + T[:3, 3]
+
+
+def pixel_grid(width: int, height: int) -> np.ndarray:
+    """(height, width, 2) float64 pixel-centre coordinates x, y."""
+    xs, ys = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    return np.stack([xs, ys], axis=-1)
