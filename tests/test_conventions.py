@@ -1,0 +1,81 @@
+"""mona_vo.conventions: quaternion order, pose inversion, projection and pixel centres."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mona_vo.conventions import (Intrinsics, invert_pose, make_pose, pose_from_tum_row, project,
+                                 quat_wxyz_from_rotation, rotation_from_quat_wxyz, tum_row, unproject)
+
+RZ90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # +90 deg about z
+
+
+def random_poses(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(n, random_state=seed).as_matrix()
+    return np.stack([make_pose(R[i], rng.normal(size=3) * 5) for i in range(n)])
+
+
+def test_quaternion_wxyz_of_90deg_about_z_is_scalar_first():
+    s = np.sqrt(0.5)
+    np.testing.assert_allclose(quat_wxyz_from_rotation(RZ90), [s, 0.0, 0.0, s], atol=1e-12)
+
+
+def test_quaternion_rotation_round_trip_and_positive_w():
+    for T in random_poses(50):
+        q = quat_wxyz_from_rotation(T[:3, :3])
+        assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
+        np.testing.assert_allclose(rotation_from_quat_wxyz(q), T[:3, :3], atol=1e-12)
+
+
+def test_tum_row_stores_quaternion_scalar_last():
+    s = np.sqrt(0.5)
+    row = tum_row(12.5, make_pose(RZ90, [1.0, 2.0, 3.0]))
+    np.testing.assert_allclose(row, [12.5, 1.0, 2.0, 3.0, 0.0, 0.0, s, s], atol=1e-12)
+    t, T = pose_from_tum_row([12.5, 1.0, 2.0, 3.0, 0.0, 0.0, s, s])
+    assert t == 12.5
+    np.testing.assert_allclose(T, make_pose(RZ90, [1, 2, 3]), atol=1e-12)
+
+
+def test_tum_row_round_trip_on_random_poses():
+    for i, T in enumerate(random_poses(20, seed=1)):
+        t, T2 = pose_from_tum_row(tum_row(float(i), T))
+        assert t == float(i)
+        np.testing.assert_allclose(T2, T, atol=1e-12)
+
+
+def test_invert_pose_gives_identity_both_ways():
+    for T in random_poses(10, seed=2):
+        np.testing.assert_allclose(T @ invert_pose(T), np.eye(4), atol=1e-12)
+        np.testing.assert_allclose(invert_pose(T) @ T, np.eye(4), atol=1e-12)
+
+
+def test_project_unproject_round_trip():
+    intr = Intrinsics(500.0, 480.0, 319.5, 239.5)
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(-2, 2, 100), rng.uniform(-1, 1, 100), rng.uniform(1, 20, 100)])
+    px = project(pts, intr)
+    np.testing.assert_allclose(unproject(px, pts[:, 2], intr), pts, atol=1e-9)
+
+
+def test_point_on_optical_axis_projects_to_principal_point():
+    intr = Intrinsics(500.0, 500.0, 300.25, 200.75)
+    np.testing.assert_allclose(project(np.array([[0.0, 0.0, 4.0]]), intr), [[300.25, 200.75]])
+
+
+def test_default_intrinsics_put_principal_point_at_image_centre():
+    intr = Intrinsics.default_for(640, 480)
+    assert (intr.cx, intr.cy) == (319.5, 239.5)
+    assert intr.fx == pytest.approx(320.0 / np.tan(np.radians(30.0)))
+
+
+@pytest.mark.parametrize("scale", [0.5, 2.0, 0.25])
+def test_scaled_intrinsics_keep_pixel_centres(scale):
+    intr = Intrinsics.default_for(640, 480)
+    small = intr.scaled(scale)
+    # The image centre maps to the centre of the resized image.
+    assert (small.cx, small.cy) == ((640 * scale - 1) / 2, (480 * scale - 1) / 2)
+    # Any point lands where resizing moves its pixel: x' = (x + 0.5) * s - 0.5.
+    pts = np.array([[0.3, -0.2, 2.0], [-1.0, 0.5, 5.0]])
+    np.testing.assert_allclose(project(pts, small), (project(pts, intr) + 0.5) * scale - 0.5)

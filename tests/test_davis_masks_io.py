@@ -1,0 +1,97 @@
+"""DAVIS sequences and mask PNG files: real masks, round trips, folder checks."""
+from __future__ import annotations
+
+import re
+
+import cv2
+import numpy as np
+import pytest
+
+from data_tools.davis import DavisSequence, list_sequences
+from data_tools.masks_io import read_mask_folder, read_mask_png, write_mask_png
+from mona_vo.errors import InputError
+
+
+def test_real_davis_car_shadow(shared_subdir):
+    root = shared_subdir("davis2016")
+    assert list_sequences(root) == ["car-shadow", "dog"]
+    seq = DavisSequence(root, "car-shadow")
+    src = seq.frames()
+    assert len(src) == 40 and (src.width, src.height) == (854, 480)
+    assert src.names[0] == "00000" and src.timestamps[-1] == 39.0
+    assert seq.mask_names == seq.names
+    masks = seq.masks(size=(854, 480))
+    assert len(masks) == 40
+    raw = cv2.imread(str(masks.paths[20]), cv2.IMREAD_UNCHANGED)
+    assert set(np.unique(raw)) == {0, 255}  # binary on disk
+    mask = masks[20]
+    assert mask.dtype == bool and mask.shape == (480, 854)
+    assert np.array_equal(mask, raw == 255)
+    assert 0.01 < mask.mean() < 0.5  # the car: present, not the whole image
+
+
+def test_davis_unknown_sequence_lists_known_ones(shared_subdir):
+    with pytest.raises(InputError, match=r"no such sequence \(JPEGImages/480p has car-shadow, dog\)"):
+        DavisSequence(shared_subdir("davis2016"), "cows")
+
+
+def test_mask_png_round_trip_is_0_255_on_disk(tmp_path):
+    mask = np.zeros((6, 9), bool)
+    mask[2:4, 3:7] = True
+    path = tmp_path / "sub" / "m.png"
+    write_mask_png(path, mask)
+    assert set(np.unique(cv2.imread(str(path), cv2.IMREAD_UNCHANGED))) == {0, 255}
+    assert np.array_equal(read_mask_png(path), mask)
+
+
+def test_any_nonzero_value_or_colour_is_foreground(tmp_path):
+    grey = np.array([[0, 1], [7, 0]], np.uint8)
+    cv2.imwrite(str(tmp_path / "g.png"), grey)
+    assert read_mask_png(tmp_path / "g.png").tolist() == [[False, True], [True, False]]
+    colour = np.zeros((2, 2, 3), np.uint8)
+    colour[0, 1] = (0, 0, 128)  # a DAVIS-2017 style object colour
+    cv2.imwrite(str(tmp_path / "c.png"), colour)
+    assert read_mask_png(tmp_path / "c.png").tolist() == [[False, True], [False, False]]
+
+
+def test_unreadable_mask_names_the_file(tmp_path):
+    bad = tmp_path / "m.png"
+    bad.write_bytes(b"garbage")
+    with pytest.raises(InputError, match=re.escape(f"{bad}: cannot decode mask")):
+        read_mask_png(bad)
+    with pytest.raises(InputError, match=re.escape(f"{tmp_path / 'x.png'}: cannot read mask")):
+        read_mask_png(tmp_path / "x.png")
+
+
+def test_write_mask_rejects_non_2d():
+    with pytest.raises(ValueError, match=r"\(H, W\)"):
+        write_mask_png("unused.png", np.zeros((2, 2, 3), bool))
+
+
+def make_masks(folder, names, size=(9, 6)):
+    for name in names:
+        write_mask_png(folder / f"{name}.png", np.ones((size[1], size[0]), bool))
+
+
+def test_mask_folder_matches_frame_names_with_dots(tmp_path):
+    names = ["1548339827.58438", "1548339827.6179"]
+    make_masks(tmp_path, names)
+    masks = read_mask_folder(tmp_path, names, size=(9, 6))
+    assert [p.name for p in masks.paths] == ["1548339827.58438.png", "1548339827.6179.png"]
+    assert all(m.all() and m.shape == (6, 9) for m in masks)
+
+
+def test_mask_folder_problems_name_folder_and_files(tmp_path):
+    names = [f"{i:05d}" for i in range(10)]
+    make_masks(tmp_path, names[1:])
+    with pytest.raises(InputError, match=re.escape(f"{tmp_path}: no mask for 1 of 10 frames: 00000.png")):
+        read_mask_folder(tmp_path, names)
+    with pytest.raises(InputError, match=re.escape(
+            f"{tmp_path}: 7 masks match no frame: 00003.png, 00004.png, 00005.png, 00006.png, "
+            "00007.png, ... (7 in all)")):
+        read_mask_folder(tmp_path, names[1:3])
+    assert len(read_mask_folder(tmp_path, names[1:3], allow_extra=True)) == 2
+    with pytest.raises(InputError, match=re.escape(f"{tmp_path}: mask 00001.png is 9x6, the frames are 8x6")):
+        read_mask_folder(tmp_path, names[1:], size=(8, 6))
+    with pytest.raises(InputError, match="mask folder not found"):
+        read_mask_folder(tmp_path / "none", names)
