@@ -1,0 +1,272 @@
+"""Sliding-window bundle adjustment as a GTSAM factor graph, blind to moving objects.
+
+Variables: ``X(k)`` the pose T_world_cam of window keyframe k (gtsam.Pose3), ``L(j)`` the world
+position of landmark j (Point3), and, when a shared focal length is refined, ``K(0)`` (Cal3f).
+Factors: one projection factor per observation with a robust kernel (Huber or Cauchy) on the
+pixel residual; a prior on every *fixed* keyframe.
+
+Gauge: monocular BA is free in 7 degrees of freedom (rotation, translation and scale of the
+world). The caller fixes the oldest keyframes of the window (at least two with a baseline): their
+priors hold the world frame and the scale that earlier windows established, so consecutive
+windows agree with each other. Keyframes that left the window are never touched again (the
+LEAP-VO/DPVO fixed-lag scheme, instead of a marginal prior).
+
+Masks: a per-keyframe boolean moving-object mask may be given. An observation inside a mask is
+not added, and a landmark observed inside a mask in *any* keyframe of the window is dropped as a
+whole (its other observations are not added either). :class:`BAResult` counts both.
+"""
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import K, L, X
+
+from mona_vo.conventions import Intrinsics, invert_pose
+
+
+@dataclass(frozen=True)
+class BAConfig:
+    pixel_sigma: float = 1.0         # px; standard deviation of a tracked point's position
+    robust_kernel: str = "huber"     # huber | cauchy | none; on the whitened pixel residual
+    robust_k: float = 1.5            # kernel width in sigmas (Huber's k, Cauchy's c)
+    max_iterations: int = 8          # Levenberg-Marquardt iterations per window solve
+    outlier_px: float = 3.0          # after solving, residuals above this are reported outliers
+    gauge_sigma: float = 1e-6        # rad and m; prior sigma that holds fixed keyframes in place
+    min_observations: int = 2        # landmarks with fewer usable observations are left out
+    focal_prior_ratio: float = 0.3   # with refine_focal: 1-sigma prior on f as a fraction of f
+    resolve_without_outliers: bool = True  # second solve without observations > outlier_px
+
+    def validate(self) -> None:
+        from mona_vo.errors import ConfigError
+
+        if self.robust_kernel not in ("huber", "cauchy", "none"):
+            raise ConfigError(f"ba.robust_kernel must be huber, cauchy or none, not '{self.robust_kernel}'")
+        if self.pixel_sigma <= 0 or self.robust_k <= 0:
+            raise ConfigError("ba.pixel_sigma and ba.robust_k must be positive")
+
+
+@dataclass
+class BAProblem:
+    """One window's bundle-adjustment problem (plain arrays; nothing here is GTSAM).
+
+    poses:        keyframe id -> 4x4 T_world_cam initial estimate.
+    fixed:        keyframe ids held fixed (gauge and scale); must be keys of ``poses``.
+    intrinsics:   keyframe id -> Intrinsics (per keyframe; shared focal only with refine_focal).
+    landmarks:    landmark id -> (3,) world position initial estimate.
+    obs_kf, obs_lm: (M,) int64 keyframe / landmark id of each observation.
+    obs_uv:       (M, 2) float64 observed pixels x, y.
+    masks:        keyframe id -> (H, W) bool moving-object mask (optional per keyframe).
+    """
+
+    poses: dict[int, np.ndarray]
+    fixed: set[int]
+    intrinsics: dict[int, Intrinsics]
+    landmarks: dict[int, np.ndarray]
+    obs_kf: np.ndarray
+    obs_lm: np.ndarray
+    obs_uv: np.ndarray
+    masks: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
+class BAResult:
+    """Solved window. Residuals are reprojection errors in pixels after the solve (NaN for
+    observations that were not in the graph)."""
+
+    poses: dict[int, np.ndarray]
+    landmarks: dict[int, np.ndarray]
+    focal: float | None
+    obs_used: np.ndarray
+    obs_residual_px: np.ndarray
+    outlier: np.ndarray
+    masked_observations: int
+    masked_landmark_ids: np.ndarray
+    initial_rmse_px: float
+    final_rmse_px: float
+    iterations: int
+    seconds: float
+
+    @property
+    def masked_landmarks(self) -> int:
+        return int(len(self.masked_landmark_ids))
+
+
+def observations_in_masks(obs_kf: np.ndarray, obs_uv: np.ndarray,
+                          masks: dict[int, np.ndarray]) -> np.ndarray:
+    """(M,) bool: observation lies on a True pixel of its keyframe's mask (nearest pixel centre)."""
+    inside = np.zeros(len(obs_kf), bool)
+    for kf, mask in masks.items():
+        if mask is None:
+            continue
+        sel = np.flatnonzero(obs_kf == kf)
+        if not len(sel):
+            continue
+        h, w = mask.shape
+        x = np.clip(np.rint(obs_uv[sel, 0]).astype(int), 0, w - 1)
+        y = np.clip(np.rint(obs_uv[sel, 1]).astype(int), 0, h - 1)
+        inside[sel] = mask[y, x]
+    return inside
+
+
+def focal_prior_error(focal0: float, this: gtsam.CustomFactor, values: gtsam.Values,
+                      jacobians: list[np.ndarray] | None) -> np.ndarray:
+    """Residual f - focal0 (px) of the shared Cal3f; GTSAM has no PriorFactorCal3f. Cal3f's local
+    coordinate is f itself, so the Jacobian is 1."""
+    f = values.atCal3f(this.keys()[0]).fx()
+    if jacobians is not None:
+        jacobians[0] = np.ones((1, 1))
+    return np.array([f - focal0])
+
+
+def _noise(cfg: BAConfig):
+    pixel = gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)  # pixel_sigma px in u and v
+    if cfg.robust_kernel == "huber":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k), pixel)
+    if cfg.robust_kernel == "cauchy":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k), pixel)
+    return pixel
+
+
+def reprojection_residuals(poses: dict[int, np.ndarray], landmarks: dict[int, np.ndarray],
+                           intrinsics: dict[int, Intrinsics], obs_kf: np.ndarray,
+                           obs_lm: np.ndarray, obs_uv: np.ndarray,
+                           focal: float | None = None) -> np.ndarray:
+    """(M,) reprojection error in px of each observation (inf behind the camera, NaN when its
+    landmark or keyframe is unknown)."""
+    res = np.full(len(obs_kf), np.nan)
+    for kf in np.unique(obs_kf):
+        kf = int(kf)
+        if kf not in poses:
+            continue
+        sel = np.flatnonzero(obs_kf == kf)
+        sel = sel[[int(j) in landmarks for j in obs_lm[sel]]]
+        if not len(sel):
+            continue
+        P = np.array([landmarks[int(j)] for j in obs_lm[sel]])
+        Tcw = invert_pose(poses[kf])
+        Xc = P @ Tcw[:3, :3].T + Tcw[:3, 3]
+        intr = intrinsics[kf]
+        fx, fy = (focal, focal) if focal is not None else (intr.fx, intr.fy)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = fx * Xc[:, 0] / Xc[:, 2] + intr.cx
+            v = fy * Xc[:, 1] / Xc[:, 2] + intr.cy
+        e = np.hypot(u - obs_uv[sel, 0], v - obs_uv[sel, 1])
+        e[~(Xc[:, 2] > 1e-9)] = np.inf
+        res[sel] = e
+    return res
+
+
+def _constrained(obs_kf, obs_lm, usable, free_kf, min_observations):
+    """Keep landmarks with enough observations, one of them in a free keyframe: any other
+    landmark is unconstrained or only adds cost. Returns (usable mask, kept landmark ids)."""
+    lm_ids, counts = np.unique(obs_lm[usable], return_counts=True)
+    lm_free = np.unique(obs_lm[usable & np.isin(obs_kf, free_kf)])
+    keep_lm = lm_ids[(counts >= min_observations) & np.isin(lm_ids, lm_free)]
+    return usable & np.isin(obs_lm, keep_lm), keep_lm
+
+
+def _solve(problem: BAProblem, cfg: BAConfig, usable: np.ndarray, keep_lm: np.ndarray,
+           refine_focal: bool, focal_start: float | None = None):
+    """Build the factor graph of the usable observations and run Levenberg-Marquardt.
+    Returns (poses, landmarks, focal, iterations)."""
+    obs_kf, obs_lm, obs_uv = problem.obs_kf, problem.obs_lm, problem.obs_uv
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    noise = _noise(cfg)
+    kf_ids = sorted(problem.poses)
+    intr0 = problem.intrinsics[kf_ids[0]]
+    focal0 = (focal_start or intr0.fx) if refine_focal else None
+    if refine_focal:
+        values.insert(K(0), gtsam.Cal3f(focal0, intr0.cx, intr0.cy))
+        # Without rotation in the window, focal length and depth trade off; the prior keeps f
+        # near the first keyframe's value unless the observations clearly say otherwise.
+        f_noise = gtsam.noiseModel.Isotropic.Sigma(1, cfg.focal_prior_ratio * intr0.fx)  # px
+        graph.add(gtsam.CustomFactor(f_noise, [K(0)], functools.partial(focal_prior_error, intr0.fx)))
+    cal = {k: gtsam.Cal3_S2(i.fx, i.fy, 0.0, i.cx, i.cy) for k, i in problem.intrinsics.items()}
+    for k in kf_ids:
+        values.insert(X(k), gtsam.Pose3(problem.poses[k]))
+    gauge = gtsam.noiseModel.Isotropic.Sigma(6, cfg.gauge_sigma)  # rad (rotation first), then m
+    for k in sorted(problem.fixed):
+        graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(problem.poses[k]), gauge))
+    for j in keep_lm:
+        values.insert(L(int(j)), np.asarray(problem.landmarks[int(j)], np.float64))
+    for i in np.flatnonzero(usable):
+        k, j = int(obs_kf[i]), int(obs_lm[i])
+        if refine_focal:
+            graph.add(gtsam.GeneralSFMFactor2Cal3f(obs_uv[i], noise, X(k), L(j), K(0)))
+        else:
+            graph.add(gtsam.GenericProjectionFactorCal3_S2(obs_uv[i], noise, X(k), L(j), cal[k]))
+    poses, landmarks = dict(problem.poses), dict(problem.landmarks)
+    if not len(keep_lm):
+        return poses, landmarks, focal0, 0
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(cfg.max_iterations)
+    params.setRelativeErrorTol(1e-4)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = optimizer.optimize()
+    for k in kf_ids:
+        poses[k] = result.atPose3(X(k)).matrix()
+    for j in keep_lm:
+        landmarks[int(j)] = result.atPoint3(L(int(j)))
+    focal = float(result.atCal3f(K(0)).fx()) if refine_focal else None
+    return poses, landmarks, focal, optimizer.iterations()
+
+
+def sliding_window_ba(problem: BAProblem, cfg: BAConfig = BAConfig(), *,
+                      refine_focal: bool = False) -> BAResult:
+    """Solve one window. ``refine_focal`` estimates one focal length shared by all keyframes
+    (principal points stay as given), starting from the first keyframe's fx."""
+    t0 = time.perf_counter()
+    obs_kf = np.asarray(problem.obs_kf, np.int64)
+    obs_lm = np.asarray(problem.obs_lm, np.int64)
+    obs_uv = np.asarray(problem.obs_uv, np.float64)
+    in_window = np.isin(obs_kf, list(problem.poses)) & np.isin(obs_lm, list(problem.landmarks))
+
+    masked_obs = observations_in_masks(obs_kf, obs_uv, problem.masks) & in_window
+    masked_lms = np.unique(obs_lm[masked_obs])
+    usable = in_window & ~np.isin(obs_lm, masked_lms)
+    free_kf = np.array([k for k in problem.poses if k not in problem.fixed], np.int64)
+    usable, keep_lm = _constrained(obs_kf, obs_lm, usable, free_kf, cfg.min_observations)
+
+    res0 = reprojection_residuals(problem.poses, problem.landmarks, problem.intrinsics,
+                                  obs_kf[usable], obs_lm[usable], obs_uv[usable],
+                                  problem.intrinsics[min(problem.poses)].fx if refine_focal else None)
+    poses, landmarks, focal, iterations = _solve(problem, cfg, usable, keep_lm, refine_focal)
+    if cfg.resolve_without_outliers and iterations:
+        # Second stage: a robust kernel still feels gross outliers (a dragged track, a mover the
+        # masks missed); remove what the first solve cannot explain and solve again.
+        r = reprojection_residuals(poses, landmarks, problem.intrinsics, obs_kf, obs_lm, obs_uv, focal)
+        gross = usable & ~(r <= cfg.outlier_px)
+        if gross.any():
+            usable, keep_lm = _constrained(obs_kf, obs_lm, usable & ~gross, free_kf,
+                                           cfg.min_observations)
+            warm = BAProblem(poses, problem.fixed, problem.intrinsics, landmarks, obs_kf, obs_lm,
+                             obs_uv)
+            poses, landmarks, focal, more = _solve(warm, cfg, usable, keep_lm, refine_focal,
+                                                   focal_start=focal)
+            iterations += more
+            usable_final = usable | gross
+        else:
+            usable_final = usable
+    else:
+        usable_final = usable
+
+    res = np.full(len(obs_kf), np.nan)
+    res[usable_final] = reprojection_residuals(poses, landmarks, problem.intrinsics,
+                                               obs_kf[usable_final], obs_lm[usable_final],
+                                               obs_uv[usable_final], focal)
+
+    def rmse(r):
+        r = r[np.isfinite(r)]
+        return float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
+
+    return BAResult(
+        poses=poses, landmarks=landmarks, focal=focal, obs_used=usable, obs_residual_px=res,
+        outlier=usable_final & ~(res <= cfg.outlier_px),
+        masked_observations=int(masked_obs.sum()), masked_landmark_ids=masked_lms,
+        initial_rmse_px=rmse(res0), final_rmse_px=rmse(res[usable]), iterations=iterations,
+        seconds=time.perf_counter() - t0)

@@ -1,0 +1,73 @@
+"""Where to put new tracks: one point per cell of a grid, the best-textured candidate of each cell
+(LEAP-VO's rule, also MONA's anchor points), and uniformly random detection points (MONA).
+
+Scores: ``gradient`` is LEAP-VO's image-gradient magnitude; ``min_eigen`` (default) is the smaller
+eigenvalue of the structure tensor (Shi-Tomasi), which also rejects straight edges where a
+Lucas-Kanade tracker slides along the edge (aperture problem).
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def texture_score(gray: np.ndarray, kind: str = "min_eigen") -> np.ndarray:
+    """(H, W) float32 trackability score of a (H, W) uint8 grey image."""
+    if kind == "min_eigen":
+        return cv2.cornerMinEigenVal(gray, blockSize=5, ksize=3)
+    if kind == "gradient":
+        gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
+        gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+        return cv2.GaussianBlur(cv2.magnitude(gx, gy), (5, 5), 0)
+    raise ValueError(f"unknown texture score '{kind}' (min_eigen, gradient)")
+
+
+def grid_points(score: np.ndarray, cols: int, rows: int, *, border: int = 8,
+                exclude: np.ndarray | None = None, occupied: np.ndarray | None = None,
+                min_score: float = 1e-4) -> np.ndarray:
+    """The highest-scoring pixel of every cell of a cols x rows grid.
+
+    score:    (H, W) float32 from :func:`texture_score`.
+    exclude:  optional (H, W) bool; pixels that may not be chosen (e.g. a moving-object mask).
+    occupied: optional (M, 2) pixels of live tracks; cells holding one get no new point.
+    Returns (N, 2) float32 pixels x, y, at most one per cell, each with score >= min_score (a
+    textureless cell gets no point rather than an untrackable one).
+    """
+    h, w = score.shape
+    s = score.copy()
+    if exclude is not None:
+        s[exclude] = -1.0
+    s[:border] = -1.0
+    s[h - border:] = -1.0
+    s[:, :border] = -1.0
+    s[:, w - border:] = -1.0
+    xs = np.linspace(0, w, cols + 1).astype(int)
+    ys = np.linspace(0, h, rows + 1).astype(int)
+    taken = np.zeros((rows, cols), bool)
+    if occupied is not None and len(occupied):
+        occ = np.asarray(occupied)
+        ci = np.clip(np.searchsorted(xs, occ[:, 0], side="right") - 1, 0, cols - 1)
+        ri = np.clip(np.searchsorted(ys, occ[:, 1], side="right") - 1, 0, rows - 1)
+        taken[ri, ci] = True
+    out = []
+    for r in range(rows):
+        for c in range(cols):
+            if taken[r, c]:
+                continue
+            cell = s[ys[r]:ys[r + 1], xs[c]:xs[c + 1]]
+            if cell.size == 0:
+                continue
+            k = int(np.argmax(cell))
+            cy, cx = divmod(k, cell.shape[1])
+            if cell[cy, cx] >= min_score:
+                out.append((xs[c] + cx, ys[r] + cy))
+    return np.asarray(out, np.float32).reshape(-1, 2)
+
+
+def random_points(width: int, height: int, n: int, rng: np.random.Generator, *,
+                  border: int = 8) -> np.ndarray:
+    """(n, 2) float32 uniformly random integer pixels away from the border (MONA's detection
+    points)."""
+    x = rng.integers(border, width - border, n)
+    y = rng.integers(border, height - border, n)
+    return np.stack([x, y], axis=1).astype(np.float32)

@@ -1,0 +1,137 @@
+"""Point tracks: one interface, back ends by name (``TRACKERS``).
+
+A tracker is fed one frame at a time (frames stream, memory stays flat). It owns a set of live
+tracks, each with a stable integer id. ``add_points`` starts tracks at the current frame;
+``step(image)`` advances every live track to the new frame and returns where they are. A track
+that the tracker judges lost (occluded, left the image, failed its visibility check) is reported
+once with ``visible=False`` and then forgotten.
+
+Default back end ``lk``: pyramidal Lucas-Kanade with a forward-backward check as the visibility
+test.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mona_vo.registry import Registry
+
+TRACKERS = Registry("tracker")
+
+
+@dataclass(frozen=True)
+class TrackUpdate:
+    """Where the live tracks are in the current frame.
+
+    ids:     (N,) int64 track ids.
+    points:  (N, 2) float32 pixels x, y (pixel centres at integers).
+    visible: (N,) bool; False marks a track lost at this frame (it is dropped afterwards).
+    error:   (N,) float32 tracking uncertainty in pixels (LK: forward-backward distance).
+    """
+
+    ids: np.ndarray
+    points: np.ndarray
+    visible: np.ndarray
+    error: np.ndarray
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 grey image from (H, W, 3) uint8 RGB (or pass a grey image through)."""
+    if image.ndim == 2:
+        return image
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+class Tracker(ABC):
+    """Frame-to-frame point tracker with persistent track ids."""
+
+    @abstractmethod
+    def step(self, image: np.ndarray) -> TrackUpdate:
+        """Advance to the next frame ((H, W, 3) uint8 RGB or (H, W) grey). The first call only
+        sets the frame and returns an empty update."""
+
+    @abstractmethod
+    def add_points(self, points: np.ndarray) -> np.ndarray:
+        """Start tracks at (N, 2) pixels of the current frame; returns their (N,) int64 ids."""
+
+    @abstractmethod
+    def remove(self, ids: np.ndarray) -> None:
+        """Stop tracking these ids."""
+
+    @abstractmethod
+    def live(self) -> TrackUpdate:
+        """The live tracks at the current frame."""
+
+
+@TRACKERS.register("lk")
+class LKTracker(Tracker):
+    """Pyramidal Lucas-Kanade (OpenCV) with forward-backward consistency as visibility.
+
+    win_size:     LK window side, pixels.
+    levels:       pyramid levels above the base; motion up to ~win_size * 2**levels px is caught.
+    fb_max_px:    a track whose backward-tracked point lands further than this from its start is
+                  lost (occlusion, drift onto another surface, aperture problem).
+    border_px:    tracks closer than this to the image border are lost (LK windows get clipped).
+    """
+
+    def __init__(self, win_size: int = 21, levels: int = 3, fb_max_px: float = 0.7,
+                 border_px: float = 4.0, iterations: int = 30):
+        self.win = (int(win_size), int(win_size))
+        self.levels = int(levels)
+        self.fb_max_px = float(fb_max_px)
+        self.border_px = float(border_px)
+        self.criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(iterations), 0.01)
+        self._pyr = None
+        self._shape = None
+        self._ids = np.zeros(0, np.int64)
+        self._pts = np.zeros((0, 2), np.float32)
+        self._err = np.zeros(0, np.float32)
+        self._next_id = 0
+
+    def live(self) -> TrackUpdate:
+        return TrackUpdate(self._ids.copy(), self._pts.copy(), np.ones(len(self._ids), bool),
+                           self._err.copy())
+
+    def add_points(self, points: np.ndarray) -> np.ndarray:
+        points = np.asarray(points, np.float32).reshape(-1, 2)
+        ids = np.arange(self._next_id, self._next_id + len(points), dtype=np.int64)
+        self._next_id += len(points)
+        self._ids = np.concatenate([self._ids, ids])
+        self._pts = np.concatenate([self._pts, points])
+        self._err = np.concatenate([self._err, np.zeros(len(points), np.float32)])
+        return ids
+
+    def remove(self, ids: np.ndarray) -> None:
+        keep = ~np.isin(self._ids, ids)
+        self._ids, self._pts, self._err = self._ids[keep], self._pts[keep], self._err[keep]
+
+    def step(self, image: np.ndarray) -> TrackUpdate:
+        # OpenCV's Python binding cannot take prebuilt pyramids, so each call builds its own.
+        gray = to_gray(image)
+        prev, self._pyr = self._pyr, gray
+        pyr = gray
+        if prev is None or self._shape != gray.shape or len(self._ids) == 0:
+            self._shape = gray.shape
+            if prev is not None and len(self._ids) and self._shape != gray.shape:
+                self._ids = self._ids[:0]
+                self._pts = self._pts[:0]
+                self._err = self._err[:0]
+            return self.live()
+        p0 = self._pts.reshape(-1, 1, 2)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, pyr, p0, None, winSize=self.win,
+                                              maxLevel=self.levels, criteria=self.criteria)
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, prev, p1, None, winSize=self.win,
+                                               maxLevel=self.levels, criteria=self.criteria)
+        p1 = p1.reshape(-1, 2)
+        fb = np.linalg.norm(p0b.reshape(-1, 2) - self._pts, axis=1).astype(np.float32)
+        h, w = gray.shape
+        b = self.border_px
+        inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
+        ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= self.fb_max_px) & inside
+        ok &= np.isfinite(p1).all(axis=1)
+        update = TrackUpdate(self._ids.copy(), p1.astype(np.float32), ok, fb)
+        self._ids, self._pts, self._err = self._ids[ok], p1[ok].astype(np.float32), fb[ok]
+        return update

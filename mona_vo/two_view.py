@@ -1,0 +1,132 @@
+"""Two-view geometry for initialisation and mapping: relative pose from an essential matrix
+(OpenCV's USAC-MAGSAC five-point RANSAC), triangulation, and a rotation-only fit for footage
+without parallax.
+
+Points are matched pixel arrays (N, 2); they are normalised with each view's intrinsics first,
+so the two views may have different calibrations (Sintel's focal length changes per frame).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mona_vo.conventions import Intrinsics, invert_pose, make_pose
+
+
+def normalize(pixels: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """(N, 2) float64 normalised image coordinates ((x - cx) / fx, (y - cy) / fy)."""
+    p = np.asarray(pixels, np.float64)
+    return np.stack([(p[:, 0] - intr.cx) / intr.fx, (p[:, 1] - intr.cy) / intr.fy], axis=1)
+
+
+def bearings(pixels: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """(N, 3) unit rays in the camera frame."""
+    n = normalize(pixels, intr)
+    b = np.concatenate([n, np.ones((len(n), 1))], axis=1)
+    return b / np.linalg.norm(b, axis=1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class RelativePose:
+    """Result of :func:`relative_pose`.
+
+    T_a_b:        4x4 pose of view b in view a's frame; translation has unit norm (scale unknown).
+    inliers:      (N,) bool, points consistent with the essential matrix and in front of both views.
+    parallax_deg: (N,) angle between the two rays of each point after removing the rotation.
+    """
+
+    T_a_b: np.ndarray
+    inliers: np.ndarray
+    parallax_deg: np.ndarray
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+    @property
+    def median_parallax_deg(self) -> float:
+        p = self.parallax_deg[self.inliers]
+        return float(np.median(p)) if len(p) else 0.0
+
+
+def relative_pose(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr_b: Intrinsics,
+                  *, threshold_px: float = 1.0, confidence: float = 0.999) -> RelativePose | None:
+    """Relative pose of view b w.r.t. view a from >= 8 matched pixels; None when RANSAC fails."""
+    if len(pts_a) < 8:
+        return None
+    na, nb = normalize(pts_a, intr_a), normalize(pts_b, intr_b)
+    f = 0.5 * (intr_a.fx + intr_a.fy + intr_b.fx + intr_b.fy) / 2.0
+    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.USAC_MAGSAC,
+                                   prob=confidence, threshold=threshold_px / f)
+    if E is None or E.shape != (3, 3):
+        return None
+    _, R, t, mask_pose = cv2.recoverPose(E, na, nb, np.eye(3), mask=mask.copy())
+    # recoverPose gives x_b = R x_a + t, i.e. T_b_a.
+    T_a_b = invert_pose(make_pose(R, t.ravel() / max(np.linalg.norm(t), 1e-12)))
+    inliers = mask_pose.ravel() > 0
+    ba_, bb = bearings(pts_a, intr_a), bearings(pts_b, intr_b)
+    bb_in_a = bb @ T_a_b[:3, :3].T
+    cosang = np.clip(np.sum(ba_ * bb_in_a, axis=1), -1.0, 1.0)
+    return RelativePose(T_a_b, inliers, np.degrees(np.arccos(cosang)))
+
+
+def projection_matrix(T_world_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """3x4 K [R|t] world-to-image."""
+    T_cam_world = invert_pose(T_world_cam)
+    return intr.K @ T_cam_world[:3]
+
+
+def triangulate(T_world_a: np.ndarray, T_world_b: np.ndarray, pts_a: np.ndarray,
+                pts_b: np.ndarray, intr_a: Intrinsics, intr_b: Intrinsics
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Linear (DLT) triangulation of matched pixels seen from two posed views.
+
+    Returns points (N, 3) world, max reprojection error (N,) px over both views (inf where the
+    point lies behind a camera), and the ray angle (N,) in degrees.
+    """
+    Pa, Pb = projection_matrix(T_world_a, intr_a), projection_matrix(T_world_b, intr_b)
+    Xh = cv2.triangulatePoints(Pa, Pb, np.asarray(pts_a, np.float64).T,
+                               np.asarray(pts_b, np.float64).T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = (Xh[:3] / Xh[3]).T
+    err = np.full(len(X), np.inf)
+    ok = np.isfinite(X).all(axis=1)
+    errs = []
+    for T, intr, pts in ((T_world_a, intr_a, pts_a), (T_world_b, intr_b, pts_b)):
+        Tcw = invert_pose(T)
+        Xc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = intr.fx * Xc[:, 0] / Xc[:, 2] + intr.cx
+            v = intr.fy * Xc[:, 1] / Xc[:, 2] + intr.cy
+        e = np.hypot(u - pts[:, 0], v - pts[:, 1])
+        e[~(Xc[:, 2] > 0)] = np.inf
+        errs.append(e)
+    err[ok] = np.maximum(errs[0], errs[1])[ok]
+    ca, cb = T_world_a[:3, 3], T_world_b[:3, 3]
+    ra, rb = X - ca, X - cb
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cos = np.sum(ra * rb, axis=1) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))
+    angle = np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=1.0), -1.0, 1.0)))
+    return X, err, angle
+
+
+def rotation_only(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr_b: Intrinsics,
+                  *, threshold_px: float = 2.0) -> tuple[np.ndarray, np.ndarray] | None:
+    """Rotation R_a_b of a camera turning without translation (or seeing only far points), from
+    a robust homography between normalised points projected onto SO(3). Returns (R_a_b, inliers)
+    or None. Used where the essential matrix is degenerate."""
+    if len(pts_a) < 6:
+        return None
+    na, nb = normalize(pts_a, intr_a), normalize(pts_b, intr_b)
+    f = 0.5 * (intr_a.fx + intr_b.fx)
+    H, mask = cv2.findHomography(nb, na, cv2.USAC_MAGSAC, threshold_px / f)
+    if H is None:
+        return None
+    U, _, Vt = np.linalg.svd(H)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = -R
+    # H maps b -> a, so for a pure rotation it is R_a_b.
+    return R, mask.ravel() > 0
