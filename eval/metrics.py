@@ -1,0 +1,282 @@
+"""Camera-trajectory metrics (ATE, RPE) that equal evo's numbers on the same input.
+
+The maths is evo's own (``evo.core``: timestamp association, Umeyama alignment, APE, RPE); this
+module only fixes the protocol of REFERENCE.md section 4 (MPI Sintel, as in LEAP-VO's and
+ParticleSfM's scripts) and converts mona-vo's arrays to evo's objects and back:
+
+- association: ``evo.core.sync.associate_trajectories(gt, est, max_diff)`` (nearest timestamp,
+  starting from the shorter trajectory), exactly as ``evo_ape tum GT EST`` does;
+- alignment: one global Umeyama alignment of the estimate onto the GT positions, Sim(3)
+  (``-a -s``), SE(3) (``-a``) or none;
+- ATE: APE of the translation part, RMSE, after the alignment;
+- RPE: ``delta=1 frames, all_pairs=True`` (``rel_delta_tol=0.01`` is irrelevant for frames),
+  translation part and rotation angle in degrees, RMSE, computed on the *same globally aligned*
+  estimate. That is what ``evo_rpe ... -a -s`` does: ``evo.main_rpe.rpe`` aligns the whole
+  estimate with ``traj_est.align(traj_ref, correct_scale)`` before ``metrics.RPE``. A rigid
+  alignment does not change an RPE, the Sim(3) scale does: after it the relative translations of
+  the estimate are in GT units (metres).
+
+Only ``evo.core`` is imported (``evo.tools`` pulls rosbags and matplotlib), lazily inside the
+functions so that importing this module stays cheap. Nothing here touches files.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from enum import Enum, unique
+
+import numpy as np
+
+from mona_vo.errors import EvalError
+
+logger = logging.getLogger(__name__)
+
+# Matched poses needed for a metric: Umeyama in 3-D needs >= 3 non-collinear points, and RPE needs
+# at least one pair.
+MIN_MATCHED_POSES = 3
+
+
+@unique
+class Alignment(str, Enum):
+    """Global alignment of the estimate onto the GT before the errors are taken.
+
+    A ``str`` enum: ``Alignment.SIM3 == "sim3"`` holds, so plain strings are accepted everywhere.
+    """
+
+    SIM3 = "sim3"  # rotation, translation and scale (monocular VO; evo_ape -a -s)
+    SE3 = "se3"  # rotation and translation (metric VO, stereo/RGB-D; evo_ape -a)
+    NONE = "none"  # compare as given
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """Timestamped camera poses, mona-vo conventions (see ``mona_vo.conventions``).
+
+    Fields
+        timestamps: (N,) float64, seconds (TUM) or frame numbers (Sintel, KITTI: ``arange(N)``);
+            non-decreasing (equal neighbours occur in real mocap GT, e.g. TUM fr2/desk, and evo
+            accepts them).
+        poses_T_world_cam: (N, 4, 4) float64 camera-to-world rigid transforms; ``[:, :3, 3]`` are
+            the camera centres in the world frame (metres for GT, arbitrary units for monocular VO).
+
+    The constructor stores read-only float64 copies, so the trajectory cannot change after it is
+    built and the caller's arrays are never shared. Shapes and values are validated by
+    :meth:`check`, not on construction, so a reader can build first and report problems after.
+    """
+
+    timestamps: np.ndarray
+    poses_T_world_cam: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("timestamps", "poses_T_world_cam"):
+            arr = np.array(getattr(self, name), dtype=np.float64, copy=True)
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    @classmethod
+    def from_poses(cls, poses_T_world_cam: np.ndarray, timestamps: np.ndarray | None = None
+                   ) -> "Trajectory":
+        """Trajectory of (N, 4, 4) camera-to-world poses; timestamps default to ``arange(N)``
+        (frame numbers, for formats without time such as KITTI)."""
+        poses = np.asarray(poses_T_world_cam, dtype=np.float64)
+        if timestamps is None:
+            timestamps = np.arange(len(poses), dtype=np.float64)
+        return cls(timestamps=timestamps, poses_T_world_cam=poses)
+
+    def __len__(self) -> int:
+        return int(self.timestamps.shape[0]) if self.timestamps.ndim == 1 else 0
+
+    @property
+    def positions_xyz(self) -> np.ndarray:
+        """(N, 3) float64 camera centres in the world frame (a read-only view)."""
+        return self.poses_T_world_cam[:, :3, 3]
+
+    def check(self, name: str = "trajectory", rigid_tol: float = 1e-5) -> None:
+        """Raise :class:`EvalError` (one line, naming ``name``) unless the trajectory is usable.
+
+        Checks: shapes (N,) and (N, 4, 4) with N >= 1, finite values, sorted (non-decreasing)
+        timestamps, and rigid poses: ``|R R^T - I| <= rigid_tol``, ``|det R - 1| <= rigid_tol``,
+        last row ``0 0 0 1``. The default tolerance accepts rotations written with float32
+        precision (KITTI files of ORB-SLAM reach 8e-7) and still rejects scaled or sheared ones.
+        """
+        ts, poses = self.timestamps, self.poses_T_world_cam
+        if ts.ndim != 1 or ts.shape[0] == 0:
+            raise EvalError(f"{name}: timestamps must be a non-empty (N,) array, got shape "
+                            f"{ts.shape}")
+        if poses.shape != (ts.shape[0], 4, 4):
+            raise EvalError(f"{name}: poses must have shape ({ts.shape[0]}, 4, 4) to match "
+                            f"{ts.shape[0]} timestamps, got {poses.shape}")
+        bad = np.flatnonzero(~np.isfinite(ts))
+        if bad.size:
+            raise EvalError(f"{name}: timestamp {bad[0]} is not finite")
+        bad = np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))
+        if bad.size:
+            raise EvalError(f"{name}: pose {bad[0]} (t={ts[bad[0]]:.6f}) is not finite")
+        # evo's association assumes sorted stamps (binary search) and silently switches to a
+        # different matching otherwise; an unsorted file is almost always a writer bug, so refuse.
+        bad = np.flatnonzero(np.diff(ts) < 0)
+        if bad.size:
+            i = bad[0] + 1
+            raise EvalError(f"{name}: timestamps must be sorted, timestamp {i} ({ts[i]:.6f}) "
+                            f"comes after {ts[i - 1]:.6f}")
+        R = poses[:, :3, :3]
+        ortho_err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2))
+        det_err = np.abs(np.linalg.det(R) - 1.0)
+        row_err = np.abs(poses[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
+        bad = np.flatnonzero((ortho_err > rigid_tol) | (det_err > rigid_tol)
+                             | (row_err > rigid_tol))
+        if bad.size:
+            i = bad[0]
+            raise EvalError(f"{name}: pose {i} (t={ts[i]:.6f}) is not a rigid transform "
+                            f"(|R R^T - I| = {ortho_err[i]:.2g}, |det R - 1| = {det_err[i]:.2g}, "
+                            f"last row {poses[i, 3].tolist()})")
+
+
+@dataclass(frozen=True)
+class TrajectoryMetrics:
+    """Errors of an estimated trajectory against GT, in GT units (metres) unless stated."""
+
+    ate: float  # APE translation RMSE after alignment, GT units
+    rpe_trans: float  # RPE translation RMSE, delta 1 frame, all pairs, GT units
+    rpe_rot_deg: float  # RPE rotation-angle RMSE, delta 1 frame, all pairs, degrees
+    n_matched: int  # poses associated between GT and estimate (evo's rule)
+    scale: float  # Sim(3) scale applied to the estimate; 1.0 for se3/none
+    path_length: float  # GT path length over the matched poses, GT units
+    ate_percent_of_path: float  # 100 * ate / path_length; NaN when the GT does not move
+    alignment: Alignment  # 'sim3' | 'se3' | 'none'
+
+    def to_dict(self) -> dict:
+        """JSON-able dict: Python floats and ints, the alignment as its string, NaN as None."""
+        def num(x: float) -> float | None:
+            return None if not math.isfinite(x) else float(x)
+
+        return {
+            "ate": num(self.ate),
+            "rpe_trans": num(self.rpe_trans),
+            "rpe_rot_deg": num(self.rpe_rot_deg),
+            "n_matched": int(self.n_matched),
+            "scale": num(self.scale),
+            "path_length": num(self.path_length),
+            "ate_percent_of_path": num(self.ate_percent_of_path),
+            "alignment": Alignment(self.alignment).value,
+        }
+
+
+def path_length(positions: np.ndarray) -> float:
+    """Arc length of a polyline: sum of the distances between consecutive (N, 3) positions,
+    in their units. 0.0 for fewer than two positions. Same value as evo's ``path_length``."""
+    p = np.asarray(positions, dtype=np.float64)
+    if p.ndim != 2 or p.shape[0] < 2:
+        return 0.0
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def _to_evo(traj: Trajectory, name: str):
+    """evo ``PoseTrajectory3D`` over *copies* of the poses: evo's align/transform replace its
+    pose list, but copying keeps the caller's data out of reach whatever evo version runs."""
+    from evo.core.trajectory import PoseTrajectory3D
+
+    poses = np.array(traj.poses_T_world_cam, dtype=np.float64, copy=True)
+    return PoseTrajectory3D(poses_se3=list(poses),
+                            timestamps=np.array(traj.timestamps, dtype=np.float64, copy=True),
+                            name=name)
+
+
+def _match(gt_evo, est_evo, *, associate: bool, max_diff: float):
+    """GT and estimate reduced to the matched poses, same length and order."""
+    from evo.core import sync
+
+    if associate:
+        try:
+            gt_m, est_m = sync.associate_trajectories(gt_evo, est_evo, max_diff=max_diff)
+        except sync.SyncException:
+            n = 0
+        else:
+            n = gt_m.num_poses
+        if n < MIN_MATCHED_POSES:
+            raise EvalError(f"only {n} estimated poses matched a GT timestamp within "
+                            f"max_diff={max_diff:g} (GT {gt_evo.num_poses} poses, estimate "
+                            f"{est_evo.num_poses}); at least {MIN_MATCHED_POSES} are needed")
+        return gt_m, est_m
+    if gt_evo.num_poses != est_evo.num_poses:
+        raise EvalError(f"index matching (associate=False) needs trajectories of equal length, "
+                        f"got GT {gt_evo.num_poses} and estimate {est_evo.num_poses} poses")
+    if gt_evo.num_poses < MIN_MATCHED_POSES:
+        raise EvalError(f"only {gt_evo.num_poses} poses matched by index (associate=False); at "
+                        f"least {MIN_MATCHED_POSES} are needed")
+    return gt_evo, est_evo
+
+
+def evaluate_trajectory(gt: Trajectory, est: Trajectory, *, align: Alignment | str = "sim3",
+                        max_diff: float = 0.01, associate: bool = True) -> TrajectoryMetrics:
+    """ATE and RPE of ``est`` against ``gt`` with the Sintel protocol, equal to evo's numbers.
+
+    Args:
+        gt: ground truth, camera-to-world, metres.
+        est: estimate, camera-to-world, any scale when ``align='sim3'``.
+        align: ``'sim3'`` (``evo_ape -a -s``), ``'se3'`` (``-a``) or ``'none'``.
+        max_diff: largest timestamp difference for a GT/estimate pair, in timestamp units
+            (seconds; frames for Sintel/KITTI numbering). evo's default 0.01.
+        associate: True associates by nearest timestamp (evo's ``associate_trajectories``);
+            False pairs pose i with pose i and needs equal lengths (KITTI pose files).
+
+    Returns:
+        :class:`TrajectoryMetrics`. ``gt`` and ``est`` are not modified.
+
+    Raises:
+        EvalError: invalid trajectory, unknown alignment, fewer than 3 matched poses, or a
+            degenerate alignment (e.g. all matched GT positions on one line).
+    """
+    from evo.core import geometry, metrics
+    from evo.core.metrics import PoseRelation, StatisticsType, Unit
+
+    try:
+        alignment = Alignment(align)
+    except ValueError:
+        raise EvalError(f"unknown alignment {align!r}; choose one of "
+                        f"{', '.join(a.value for a in Alignment)}") from None
+    try:
+        max_diff = float(max_diff)
+    except (TypeError, ValueError):
+        raise EvalError(f"max_diff must be a number, got {max_diff!r}") from None
+    if not (math.isfinite(max_diff) and max_diff >= 0):
+        raise EvalError(f"max_diff must be a finite number >= 0, got {max_diff!r}")
+    gt.check("ground truth")
+    est.check("estimate")
+
+    gt_m, est_m = _match(_to_evo(gt, "ground truth"), _to_evo(est, "estimate"),
+                         associate=associate, max_diff=max_diff)
+    n = gt_m.num_poses
+    length = path_length(gt_m.positions_xyz)
+
+    scale = 1.0
+    if alignment is not Alignment.NONE:
+        try:
+            # In place on est_m, which is already a copy (association or _to_evo made it).
+            _, _, s = est_m.align(gt_m, correct_scale=alignment is Alignment.SIM3)
+        except geometry.GeometryException as exc:
+            raise EvalError(f"{alignment.value} alignment of {n} matched poses failed: {exc} "
+                            f"(the matched positions are collinear or all the same)"
+                            ) from None
+        scale = float(s)
+
+    ape = metrics.APE(PoseRelation.translation_part)
+    ape.process_data((gt_m, est_m))
+    ate = float(ape.get_statistic(StatisticsType.rmse))
+
+    rpe = {}
+    for relation in (PoseRelation.translation_part, PoseRelation.rotation_angle_deg):
+        metric = metrics.RPE(relation, delta=1, delta_unit=Unit.frames, rel_delta_tol=0.01,
+                             all_pairs=True)
+        metric.process_data((gt_m, est_m))
+        rpe[relation] = float(metric.get_statistic(StatisticsType.rmse))
+
+    percent = 100.0 * ate / length if length > 0 else float("nan")
+    logger.debug("evaluated %d matched poses (%s): ATE %.6g, RPE %.6g / %.6g deg, scale %.6g",
+                 n, alignment.value, ate, rpe[PoseRelation.translation_part],
+                 rpe[PoseRelation.rotation_angle_deg], scale)
+    return TrajectoryMetrics(ate=ate, rpe_trans=rpe[PoseRelation.translation_part],
+                             rpe_rot_deg=rpe[PoseRelation.rotation_angle_deg], n_matched=int(n),
+                             scale=scale, path_length=length, ate_percent_of_path=percent,
+                             alignment=alignment)
