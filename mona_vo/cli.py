@@ -1,32 +1,193 @@
-"""Command line of mona-vo: parses options, calls one library function, prints. Imports are lazy so
-that ``--help`` stays fast."""
+"""mona-vo: camera trajectories of videos in which people and cars move.
+
+Commands parse options, call one library function (mona_vo.run, eval.*) and print. Imports are
+lazy so that --help stays fast. Any MonaVoError becomes one line on stderr and exit code 1.
+"""
 from __future__ import annotations
 
 import argparse
+import json
+import logging
 import sys
 
 from mona_vo import __version__
 from mona_vo.errors import MonaVoError
 
 
+def _add_config_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="YAML", help="YAML file of config overrides (keys as in report.json's config)")
+    p.add_argument("--set", metavar="KEY=VALUE", action="append", default=[],
+                   help="override one config value, e.g. --set vo.grid_size=20 (repeatable; applied after --config)")
+    p.add_argument("--preset", choices=["default", "fast", "accurate"], default="default",
+                   help="speed/accuracy preset: fast (fewer points, smaller windows), default, accurate (more points, larger windows)")
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                   help="device for neural back ends (classical back ends always run on the CPU)")
+
+
+def _add_mask_options(p: argparse.ArgumentParser, *, allow_folder: bool = True) -> None:
+    if allow_folder:
+        p.add_argument("--masks", default="mona", metavar="mona|none|DIR",
+                       help="moving-object masks: computed by MONA (default), none, or read from DIR/<frame name>.png")
+    p.add_argument("--prompt", choices=["boxes", "points", "raw-boxes"], default=None,
+                   help="MONA segmenter prompts: filtered boxes (the method, default), dynamic points only, or all detector boxes (ablations)")
+
+
+def _add_input_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", help="a video file (mp4/avi/mov/mkv/webm) or a folder of images")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
+    p.add_argument("--stride", type=int, default=1, help="use every N-th frame (default 1)")
+    p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="mona-vo", description=__doc__)
+    p = argparse.ArgumentParser(prog="mona-vo", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=f"mona-vo {__version__}")
-    p.add_subparsers(dest="command")
+    verbosity = p.add_mutually_exclusive_group()
+    verbosity.add_argument("-q", "--quiet", action="store_true", help="no progress bars, only results and errors")
+    verbosity.add_argument("-v", "--verbose", action="store_true", help="log what each stage does")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+
+    r = sub.add_parser("run", help="camera trajectory, masks and report of a video or image folder",
+                       description="Writes DIR/trajectory.txt (TUM, camera-to-world), DIR/masks/, "
+                                   "DIR/report.json, DIR/trajectory.png and, with --overlay, DIR/overlay.mp4.")
+    _add_input_options(r)
+    r.add_argument("--calib", metavar="fx,fy,cx,cy|FILE",
+                   help="intrinsics in pixels, or a file (fx fy cx cy, or KITTI calib.txt); default: a 60-degree field-of-view guess")
+    _add_mask_options(r)
+    _add_config_options(r)
+    r.add_argument("--overlay", action="store_true", help="also write DIR/overlay.mp4 with masks, points and boxes drawn")
+    r.add_argument("--gt", metavar="TUM_FILE", help="ground-truth trajectory to draw in trajectory.png")
+    r.set_defaults(func=_cmd_run)
+
+    m = sub.add_parser("masks", help="MONA moving-object masks only, written to DIR/masks/")
+    _add_input_options(m)
+    _add_mask_options(m, allow_folder=False)
+    _add_config_options(m)
+    m.set_defaults(func=_cmd_masks)
+
+    d = sub.add_parser("demo", help="generate a synthetic dynamic scene and compare no masks, MONA and GT masks")
+    d.add_argument("--out", metavar="DIR", help="keep the generated input and the runs here")
+    d.add_argument("--preset", default="one-large", help="synthetic scene preset (static, one-large, several, fast-rotation)")
+    d.add_argument("--seed", type=int, default=0, help="scene seed")
+    d.add_argument("--frames", type=int, default=40, help="number of frames")
+    d.set_defaults(func=_cmd_demo)
+
+    e = sub.add_parser("eval", help="evaluate trajectories, masks, or whole datasets")
+    esub = e.add_subparsers(dest="eval_command", metavar="WHAT")
+    et = esub.add_parser("traj", help="ATE/RPE of an estimate against GT (evo's numbers), printed as JSON")
+    et.add_argument("--gt", required=True, help="ground-truth trajectory file")
+    et.add_argument("--est", required=True, help="estimated trajectory file")
+    et.add_argument("--format", choices=["tum", "kitti"], default="tum",
+                    help="file format: tum (timestamped, associated by time) or kitti (matched by line)")
+    et.add_argument("--align", choices=["sim3", "se3", "none"], default="sim3",
+                    help="alignment before the errors: sim3 for monocular (default), se3 for metric estimates")
+    et.add_argument("--max-diff", type=float, default=0.01, help="timestamp association tolerance, seconds (tum)")
+    et.set_defaults(func=_cmd_eval_traj)
+    em = esub.add_parser("masks", help="DAVIS region J and boundary F of predicted masks, printed as JSON")
+    em.add_argument("--pred", required=True, help="folder of predicted mask PNGs")
+    em.add_argument("--gt", required=True, help="folder of ground-truth mask PNGs (same file names)")
+    em.set_defaults(func=_cmd_eval_masks)
     return p
+
+
+def _pipeline_config(args):
+    from mona_vo.config import load_config, parse_set_options
+    from mona_vo.presets import PRESETS
+    from mona_vo.pipeline import PipelineConfig
+
+    overrides = dict(PRESETS[getattr(args, "preset", "default")])
+    if getattr(args, "prompt", None):
+        overrides["masks.prompt"] = args.prompt
+    if getattr(args, "device", "cpu") != "cpu":
+        overrides["masks.device"] = args.device
+    cfg = load_config(PipelineConfig, None, overrides)
+    return load_config(cfg, getattr(args, "config", None), parse_set_options(getattr(args, "set", [])))
+
+
+def _cmd_run(args) -> int:
+    from mona_vo.run import run
+
+    report = run(args.input, args.out, calib=args.calib, masks=args.masks,
+                 config=_pipeline_config(args), overlay=args.overlay, stride=args.stride,
+                 max_frames=args.max_frames, progress=not args.quiet, gt_path=args.gt)
+    fps = report["frames_per_second"].get("total")
+    print(f"{report['frames']} frames, {report['keyframes']} keyframes, {fps:.1f} frames/s; "
+          f"low-confidence frames: {len(report['low_confidence_frames'])}; wrote {args.out}/trajectory.txt")
+    return 0
+
+
+def _cmd_masks(args) -> int:
+    from mona_vo.run import masks_only
+
+    report = masks_only(args.input, args.out, config=_pipeline_config(args), stride=args.stride,
+                        max_frames=args.max_frames, progress=not args.quiet)
+    print(f"{report['frames']} masks, {report['frames_per_second']} frames/s, mean coverage "
+          f"{100 * report['mean_mask_coverage']:.1f} %; wrote {args.out}/masks/")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from mona_vo.run import demo
+
+    out = demo(args.out, preset=args.preset, seed=args.seed, n_frames=args.frames,
+               progress=not args.quiet)
+    print(f"synthetic '{out['preset']}' scene, seed {out['seed']}, {out['frames']} frames "
+          f"{out['size'][0]}x{out['size'][1]}, camera path {out['path_length']:.2f} m")
+    for variant, label in (("none", "no masks"), ("mona", "MONA masks"), ("gt", "GT masks")):
+        r = out["results"][variant]
+        print(f"  {label:11s} ATE {r['ate']:.4f} m = {r['ate_percent_of_path']:.3f} % of path   "
+              f"RPE {r['rpe_trans']:.4f} m / {r['rpe_rot_deg']:.3f} deg   {r['frames_per_second']:.1f} frames/s")
+    if out["out_dir"]:
+        print(f"runs kept in {out['out_dir']}")
+    return 0
+
+
+def _cmd_eval_traj(args) -> int:
+    from eval.metrics import Trajectory, evaluate_trajectory
+
+    if args.format == "tum":
+        from data_tools.tum import read_tum_trajectory
+
+        gt = Trajectory(*read_tum_trajectory(args.gt))
+        est = Trajectory(*read_tum_trajectory(args.est))
+        m = evaluate_trajectory(gt, est, align=args.align, max_diff=args.max_diff)
+    else:
+        from data_tools.kitti import read_kitti_poses
+
+        gt = Trajectory.from_poses(read_kitti_poses(args.gt))
+        est = Trajectory.from_poses(read_kitti_poses(args.est))
+        m = evaluate_trajectory(gt, est, align=args.align, associate=False)
+    d = m.to_dict()
+    print(json.dumps({k: d[k] for k in ("ate", "rpe_trans", "rpe_rot_deg", "n_matched", "scale",
+                                        "path_length", "ate_percent_of_path", "alignment")}))
+    return 0
+
+
+def _cmd_eval_masks(args) -> int:
+    from eval.mask_metrics import evaluate_mask_folders
+
+    m = evaluate_mask_folders(args.pred, args.gt)
+    print(json.dumps({"J_mean": m.J_mean, "F_mean": m.F_mean, "n_frames": m.n_frames}))
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
-        return 0
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if args.command is None or (args.command == "eval" and args.eval_command is None):
+        parser.print_help() if args.command is None else parser.parse_args([args.command, "--help"])
+        return 2
     try:
         return args.func(args)
     except MonaVoError as exc:
         print(f"mona-vo: error: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print("mona-vo: interrupted; finished outputs are intact, partial ones were removed", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -7,7 +7,8 @@ that the tracker judges lost (occluded, left the image, failed its visibility ch
 once with ``visible=False`` and then forgotten.
 
 Default back end ``lk``: pyramidal Lucas-Kanade with a forward-backward check as the visibility
-test.
+test, started from each track's constant-velocity prediction so that fast pans (tens of pixels
+per frame) stay inside LK's capture range.
 """
 from __future__ import annotations
 
@@ -89,6 +90,7 @@ class LKTracker(Tracker):
         self._ids = np.zeros(0, np.int64)
         self._pts = np.zeros((0, 2), np.float32)
         self._err = np.zeros(0, np.float32)
+        self._vel = np.zeros((0, 2), np.float32)   # last image motion of each track, px/frame
         self._next_id = 0
 
     def live(self) -> TrackUpdate:
@@ -102,11 +104,15 @@ class LKTracker(Tracker):
         self._ids = np.concatenate([self._ids, ids])
         self._pts = np.concatenate([self._pts, points])
         self._err = np.concatenate([self._err, np.zeros(len(points), np.float32)])
+        # A new track starts with the typical motion of the others (the camera's, mostly).
+        v0 = np.median(self._vel, axis=0) if len(self._vel) else np.zeros(2, np.float32)
+        self._vel = np.concatenate([self._vel, np.tile(v0, (len(points), 1)).astype(np.float32)])
         return ids
 
     def remove(self, ids: np.ndarray) -> None:
         keep = ~np.isin(self._ids, ids)
         self._ids, self._pts, self._err = self._ids[keep], self._pts[keep], self._err[keep]
+        self._vel = self._vel[keep]
 
     def step(self, image: np.ndarray) -> TrackUpdate:
         # OpenCV's Python binding cannot take prebuilt pyramids, so each call builds its own.
@@ -116,13 +122,13 @@ class LKTracker(Tracker):
         if prev is None or self._shape != gray.shape or len(self._ids) == 0:
             self._shape = gray.shape
             if prev is not None and len(self._ids) and self._shape != gray.shape:
-                self._ids = self._ids[:0]
-                self._pts = self._pts[:0]
-                self._err = self._err[:0]
+                self.remove(self._ids)
             return self.live()
         p0 = self._pts.reshape(-1, 1, 2)
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, pyr, p0, None, winSize=self.win,
-                                              maxLevel=self.levels, criteria=self.criteria)
+        guess = (self._pts + self._vel).reshape(-1, 1, 2)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, pyr, p0, guess, winSize=self.win,
+                                              maxLevel=self.levels, criteria=self.criteria,
+                                              flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         p0b, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, prev, p1, None, winSize=self.win,
                                                maxLevel=self.levels, criteria=self.criteria)
         p1 = p1.reshape(-1, 2)
@@ -133,5 +139,6 @@ class LKTracker(Tracker):
         ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= self.fb_max_px) & inside
         ok &= np.isfinite(p1).all(axis=1)
         update = TrackUpdate(self._ids.copy(), p1.astype(np.float32), ok, fb)
+        self._vel = (p1 - self._pts)[ok].astype(np.float32)
         self._ids, self._pts, self._err = self._ids[ok], p1[ok].astype(np.float32), fb[ok]
         return update

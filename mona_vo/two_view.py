@@ -62,14 +62,15 @@ def relative_pose(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr
                                    prob=confidence, threshold=threshold_px / f)
     if E is None or E.shape != (3, 3):
         return None
-    _, R, t, mask_pose = cv2.recoverPose(E, na, nb, np.eye(3), mask=mask.copy())
+    # The short overload of recoverPose drops points beyond 50 baselines as if they were
+    # outliers; with the small parallax of consecutive video frames that is most of them.
+    _, R, t, mask_pose, _ = cv2.recoverPose(E, na, nb, np.eye(3), distanceThresh=1e9,
+                                             mask=mask.copy())
     # recoverPose gives x_b = R x_a + t, i.e. T_b_a.
     T_a_b = invert_pose(make_pose(R, t.ravel() / max(np.linalg.norm(t), 1e-12)))
     inliers = mask_pose.ravel() > 0
-    ba_, bb = bearings(pts_a, intr_a), bearings(pts_b, intr_b)
-    bb_in_a = bb @ T_a_b[:3, :3].T
-    cosang = np.clip(np.sum(ba_ * bb_in_a, axis=1), -1.0, 1.0)
-    return RelativePose(T_a_b, inliers, np.degrees(np.arccos(cosang)))
+    return RelativePose(T_a_b, inliers,
+                        rotation_parallax_deg(pts_a, pts_b, intr_a, intr_b, T_a_b[:3, :3]))
 
 
 def projection_matrix(T_world_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
@@ -110,6 +111,15 @@ def triangulate(T_world_a: np.ndarray, T_world_b: np.ndarray, pts_a: np.ndarray,
         cos = np.sum(ra * rb, axis=1) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))
     angle = np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=1.0), -1.0, 1.0)))
     return X, err, angle
+
+
+def rotation_parallax_deg(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics,
+                          intr_b: Intrinsics, R_a_b: np.ndarray) -> np.ndarray:
+    """(N,) angle between each point's two rays once the rotation R_a_b is removed: what is left
+    is parallax from translation (plus tracking noise)."""
+    ba_, bb = bearings(pts_a, intr_a), bearings(pts_b, intr_b)
+    cos = np.clip(np.sum(ba_ * (bb @ R_a_b.T), axis=1), -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
 
 
 def rotation_only(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr_b: Intrinsics,

@@ -29,7 +29,7 @@ from mona_vo.conventions import Intrinsics, invert_pose, make_pose
 from mona_vo.errors import ConfigError
 from mona_vo.point_selection import grid_points, texture_score
 from mona_vo.tracking import TRACKERS, to_gray
-from mona_vo.two_view import relative_pose, rotation_only, triangulate
+from mona_vo.two_view import relative_pose, rotation_only, rotation_parallax_deg, triangulate
 
 # Per-frame status, from most to least trustworthy.
 KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, EXTRAPOLATED = (
@@ -254,16 +254,19 @@ class VisualOdometry:
         rel = None
         if len(common) >= max(8, self.cfg.init_min_inliers):
             rel = relative_pose(kf0.uv[i0], uv[i1], kf0.intr, intr)
+        ro = rotation_only(kf0.uv[i0], uv[i1], kf0.intr, intr) if len(common) >= 6 else None
+        R = None if ro is None else ro[0]
         ok = (rel is not None and rel.n_inliers >= self.cfg.init_min_inliers
               and rel.median_parallax_deg >= self.cfg.init_min_parallax_deg)
+        if ok and R is not None:
+            # Near a pure rotation the essential matrix is ill-posed and its "parallax" is noise;
+            # the parallax left after the best homography rotation tells the truth.
+            par_h = rotation_parallax_deg(kf0.uv[i0][rel.inliers], uv[i1][rel.inliers], kf0.intr, intr, R)
+            ok = float(np.median(par_h)) >= 0.5 * self.cfg.init_min_parallax_deg
         if ok and self._initialise(t, gray, ids, uv, intr, mask, rel, common[rel.inliers]):
             self.timings["pose"] += time.perf_counter() - t0
             return
         # Not yet: a provisional rotation-only pose relative to the first keyframe.
-        R = None
-        if len(common) >= 6:
-            ro = rotation_only(kf0.uv[i0], uv[i1], kf0.intr, intr)
-            R = None if ro is None else ro[0]
         T = kf0.T_world_cam @ make_pose(R if R is not None else np.eye(3), np.zeros(3))
         self._record(t, ROTATION_ONLY, len(common), T_world_cam=T)
         too_long = t - kf0.frame >= self.cfg.init_max_frames
@@ -483,7 +486,8 @@ class VisualOdometry:
         # Landmarks the BA could not explain are dynamic or mistracked: out for good.
         out_lm, counts = np.unique(obs_lm[res.outlier], return_counts=True)
         for j, c in zip(out_lm, counts):
-            if c >= 2 or res.obs_residual_px[(obs_lm == j) & res.obs_used].max() > 3 * self.cfg.ba.outlier_px:
+            worst = np.nanmax(res.obs_residual_px[obs_lm == j])
+            if c >= 2 or worst > 3 * self.cfg.ba.outlier_px:
                 self.bad.add(int(j))
                 self.landmarks.pop(int(j), None)
                 self.drops["landmarks_rejected_by_ba"] += 1

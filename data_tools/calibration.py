@@ -1,0 +1,38 @@
+"""Camera calibration from the command line: ``fx,fy,cx,cy`` or a file (``fx fy cx cy`` on one
+line, TUM/Bonn/DPVO style, or a KITTI ``calib.txt`` with a ``P0:`` line), checked against the
+image size."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from data_tools.kitti import read_kitti_calib
+from data_tools.tum import read_calib_txt
+from mona_vo.conventions import Intrinsics
+from mona_vo.errors import InputError
+
+
+def parse_calibration(value: str, width: int | None = None, height: int | None = None) -> Intrinsics:
+    """Intrinsics from ``"fx,fy,cx,cy"`` or from a calibration file path; InputError otherwise."""
+    text = value.strip()
+    path = Path(text)
+    if path.exists():
+        head = path.read_text(errors="replace")[:4096]
+        intr = read_kitti_calib(path) if "P0:" in head else read_calib_txt(path)
+        where = str(path)
+    else:
+        parts = [p for p in text.replace(" ", ",").split(",") if p]
+        try:
+            numbers = [float(p) for p in parts]
+        except ValueError:
+            numbers = []
+        if len(numbers) != 4:
+            looks_like_file = any(c in text for c in "/\\") or text.endswith((".txt", ".yaml", ".json"))
+            if looks_like_file:
+                raise InputError(f"{text}: calibration file not found")
+            raise InputError(f"calibration '{text}' is neither fx,fy,cx,cy nor an existing file")
+        intr = Intrinsics(*numbers)
+        where = f"calibration '{text}'"
+    problems = intr.check(width, height)
+    if problems:
+        raise InputError(f"{where}: {problems[0]}")
+    return intr

@@ -1,0 +1,224 @@
+"""What the commands do, as library calls: ``run`` (trajectory + masks + report of one video or
+folder), ``masks_only`` and ``demo``. The CLI parses options and calls these; Python users can
+call them directly. Outputs are written through :class:`data_tools.run_outputs.RunOutputs`
+(temporary names, renamed into place at the end)."""
+from __future__ import annotations
+
+import dataclasses
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mona_vo import __version__
+from mona_vo.config import to_dict
+from mona_vo.conventions import Intrinsics
+from mona_vo.errors import InputError
+from mona_vo.pipeline import FrameOutput, PipelineConfig, estimate_trajectory
+
+
+def _progress_bar(total: int | None, desc: str, enabled: bool):
+    if not enabled:
+        return None, lambda n: None
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=desc, unit="frame", leave=False)
+
+    def update(n):
+        bar.update(n - bar.n)
+    return bar, update
+
+
+def _mask_source(masks: str | None, source, width: int, height: int):
+    """'mona' | 'none' | None | folder path -> what estimate_trajectory takes."""
+    if masks in (None, "none"):
+        return None
+    if masks == "mona":
+        return "mona"
+    from data_tools.masks_io import read_mask_folder
+
+    folder = read_mask_folder(masks, source.names, (width, height))
+    return iter(folder)
+
+
+def run(input_path: str | Path, out_dir: str | Path, *, calib: str | None = None,
+        masks: str | None = "mona", config: PipelineConfig | None = None, overlay: bool = False,
+        stride: int = 1, max_frames: int | None = None, progress: bool = True,
+        gt_path: str | Path | None = None) -> dict:
+    """Trajectory, masks and report of a video file or a folder of images. Returns the report
+    (also written to ``out_dir/report.json``)."""
+    from data_tools.calibration import parse_calibration
+    from data_tools.frames import open_frames
+    from data_tools.run_outputs import RunOutputs
+    from eval.plots import plot_trajectory
+
+    config = config or PipelineConfig()
+    source = open_frames(input_path, stride=stride, max_frames=max_frames)
+    intr = parse_calibration(calib, source.width, source.height) if calib else None
+    mask_src = _mask_source(masks, source, source.width, source.height)
+    overlay_writer = None
+    with RunOutputs(out_dir, write_masks=masks not in (None, "none")) as outputs:
+        if overlay:
+            from data_tools.overlay import OverlayWriter
+
+            overlay_writer = OverlayWriter(outputs.staging / "overlay.mp4",
+                                           fps=source.fps or 10.0)
+
+        def on_frame(f: FrameOutput):
+            outputs.add_mask(f.name, f.mask)
+            if overlay_writer is not None:
+                overlay_writer.add(f)
+
+        bar, update = _progress_bar(len(source), "mona-vo run", progress)
+        try:
+            result = estimate_trajectory(source, intrinsics=intr, masks=mask_src, config=config,
+                                         on_frame=on_frame, progress=update)
+        finally:
+            if bar is not None:
+                bar.close()
+            if overlay_writer is not None:
+                overlay_writer.close()
+        vo = result.vo
+        gt_xyz = None
+        if gt_path is not None:
+            from data_tools.tum import read_tum_trajectory
+
+            _, gt_poses = read_tum_trajectory(gt_path)
+            gt_xyz = gt_poses[:, :3, 3] if len(gt_poses) == len(vo.poses) else None
+        plot = plot_trajectory(outputs.staging / "trajectory.png", vo.poses[:, :3, 3], gt_xyz,
+                               title=f"{Path(input_path).name}: {result.n_frames} frames",
+                               low_confidence=vo.low_confidence)
+        report = build_report(result, input_path=input_path, source=source, masks=masks,
+                              config=config, calib_given=intr is not None)
+        extra = {"trajectory.png": plot}
+        if overlay_writer is not None:
+            extra["overlay.mp4"] = overlay_writer.path
+        outputs.commit(timestamps=vo.timestamps, poses=vo.poses, report=report, extra_files=extra)
+    return report
+
+
+def build_report(result, *, input_path, source, masks, config, calib_given: bool) -> dict:
+    vo = result.vo
+    t = result.timings
+    per_stage = {k: round(v, 4) for k, v in sorted(t.items())}
+    fps = {k: (result.n_frames / v if v > 0 else None) for k, v in t.items()}
+    low = [result.names[i] for i in np.flatnonzero(vo.low_confidence)]
+    intr = result.intrinsics
+    return {
+        "mona_vo_version": __version__,
+        "input": str(input_path),
+        "input_kind": getattr(source, "kind", None),
+        "frames": result.n_frames,
+        "frames_with_pose": int(np.isfinite(vo.poses).all(axis=(1, 2)).sum()),
+        "keyframes": int(vo.is_keyframe.sum()),
+        "image_size": [result.width, result.height],
+        "masks": masks or "none",
+        "mean_mask_coverage": float(result.mask_coverage.mean()) if result.n_frames else 0.0,
+        "calibration": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
+                        "source": "given" if calib_given else "60-degree field-of-view guess",
+                        "focal_used": vo.focal},
+        "seconds": per_stage,
+        "frames_per_second": {k: round(v, 2) for k, v in fps.items() if v is not None},
+        "dropped": dict(vo.drops),
+        "status_counts": {s: vo.status.count(s) for s in sorted(set(vo.status))},
+        "low_confidence_frames": low,
+        "frame_status": dict(zip(result.names, vo.status)),
+        "timestamps": "seconds from file names" if getattr(source, "timestamp_kind", "") == "seconds"
+                      else "frame numbers",
+        "config": to_dict(config),
+        "machine": {"cpu_count": _cpu_count(), "platform": platform.platform()},
+    }
+
+
+def _cpu_count() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineConfig | None = None,
+               stride: int = 1, max_frames: int | None = None, progress: bool = True) -> dict:
+    """MONA masks of a video or folder, written to ``out_dir/masks/<frame name>.png``."""
+    from data_tools.atomic import atomic_dir, write_text_atomic
+    from data_tools.frames import open_frames
+    from data_tools.masks_io import write_mask_png
+    from mona_vo.masks import compute_masks
+    import json
+
+    config = config or PipelineConfig()
+    source = open_frames(input_path, stride=stride, max_frames=max_frames)
+    names = {}
+    bar, update = _progress_bar(len(source), "mona-vo masks", progress)
+    t0 = time.perf_counter()
+    coverage = []
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        with atomic_dir(out_dir / "masks") as tmp:
+            frames = []
+
+            def remember(src):
+                for f in src:
+                    names[f.index] = f.name
+                    yield f
+            for n, mf in enumerate(compute_masks(remember(source), config.masks), start=1):
+                write_mask_png(tmp / f"{names.pop(mf.index)}.png", mf.mask)
+                coverage.append(float(mf.mask.mean()))
+                update(n)
+    finally:
+        if bar is not None:
+            bar.close()
+    seconds = time.perf_counter() - t0
+    report = {"input": str(input_path), "frames": len(coverage), "seconds": round(seconds, 3),
+              "frames_per_second": round(len(coverage) / seconds, 2) if seconds > 0 else None,
+              "mean_mask_coverage": float(np.mean(coverage)) if coverage else 0.0,
+              "config": to_dict(config.masks)}
+    write_text_atomic(out_dir / "masks_report.json", json.dumps(report, indent=2) + "\n")
+    return report
+
+
+def demo(out_dir: str | Path | None = None, *, preset: str = "one-large", seed: int = 0,
+         n_frames: int = 40, width: int = 1024, height: int = 436, config: PipelineConfig | None = None,
+         progress: bool = True) -> dict:
+    """Generate a synthetic dynamic sequence, estimate its trajectory with no masks, with MONA
+    masks and with the GT masks, and return the ATE of each (metres and % of the path)."""
+    import tempfile
+
+    from data_tools.synthetic import SceneConfig, SyntheticScene, write_frames_folder
+    from data_tools.frames import open_frames
+    from eval.metrics import Trajectory, evaluate_trajectory
+
+    config = config or PipelineConfig()
+    scene = SyntheticScene(SceneConfig(width=width, height=height, n_frames=n_frames, preset=preset,
+                                       seed=seed))
+    keep = out_dir is not None
+    root = Path(out_dir) if keep else Path(tempfile.mkdtemp(prefix="mona-vo-demo-"))
+    try:
+        folder = write_frames_folder(scene, root / "input")
+        gt = Trajectory(np.arange(n_frames, dtype=float), scene.poses())
+        rows = {}
+        for variant in ("none", "mona", "gt"):
+            masks = {"none": "none", "mona": "mona", "gt": str(Path(folder) / "masks")}[variant]
+            report = run(folder, root / variant, calib=_calib_string(scene.intrinsics),
+                         masks=masks, config=config, progress=progress,
+                         gt_path=Path(folder) / "groundtruth.txt")
+            from data_tools.tum import read_tum_trajectory
+
+            ts, poses = read_tum_trajectory(root / variant / "trajectory.txt")
+            m = evaluate_trajectory(gt, Trajectory(ts, poses))
+            rows[variant] = {"ate": m.ate, "ate_percent_of_path": m.ate_percent_of_path,
+                             "rpe_trans": m.rpe_trans, "rpe_rot_deg": m.rpe_rot_deg,
+                             "frames_per_second": report["frames_per_second"].get("total")}
+        return {"preset": preset, "seed": seed, "frames": n_frames, "size": [width, height],
+                "path_length": m.path_length, "results": rows,
+                "out_dir": str(root) if keep else None}
+    finally:
+        if not keep:
+            import shutil
+
+            shutil.rmtree(root, ignore_errors=True)
+
+
+def _calib_string(intr: Intrinsics) -> str:
+    return f"{intr.fx!r},{intr.fy!r},{intr.cx!r},{intr.cy!r}"
