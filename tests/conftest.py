@@ -25,3 +25,25 @@ def shared_subdir(shared_data):
         return folder
 
     return get
+
+
+@pytest.fixture(scope="session")
+def small_scene(tmp_path_factory):
+    """A small generated dynamic sequence written as a frame folder (images, masks/,
+    groundtruth.txt, calib.txt), shared by the command tests. Returns (folder, scene)."""
+    from data_tools.synthetic import SceneConfig, SyntheticScene, write_frames_folder
+
+    scene = SyntheticScene(SceneConfig(width=384, height=164, n_frames=24, preset="one-large", seed=0))
+    folder = write_frames_folder(scene, tmp_path_factory.mktemp("small_scene") / "frames")
+    return folder, scene
+
+
+@pytest.fixture(scope="session")
+def mona_vo_exe():
+    """The installed console script, so that tests drive the real entry point."""
+    import sys
+
+    exe = Path(sys.executable).parent / "mona-vo"
+    if not exe.exists():
+        pytest.skip("the mona-vo console script is not installed in this environment")
+    return str(exe)

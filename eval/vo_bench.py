@@ -1,0 +1,156 @@
+"""VO accuracy and speed on generated scenes: presets x seeds x mask variants.
+
+Variants: ``none`` (no masks), ``gt`` (the generator's exact moving-object masks), ``mona``
+(masks computed by MONA on the fly). Each sequence is rendered once and shared by its variants.
+ATE/RPE follow the Sintel protocol (:func:`eval.metrics.evaluate_trajectory`, Sim(3)); ATE is also
+given as a percentage of the GT path length, the unit of the issue targets.
+
+``python -m eval.vo_bench --presets static,one-large --seeds 0-5 --variants none,gt`` prints the
+per-sequence rows and the per-preset means; ``mona-vo bench`` adds the COLMAP peer.
+"""
+from __future__ import annotations
+
+import argparse
+import resource
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from data_tools.synthetic import SceneConfig, SyntheticScene
+from eval.metrics import Trajectory, evaluate_trajectory
+from mona_vo.pipeline import PipelineConfig, estimate_trajectory
+
+
+@dataclass(frozen=True)
+class _Frame:
+    index: int
+    timestamp: float
+    name: str
+    image: np.ndarray
+
+
+def render_sequence(preset: str, seed: int, n_frames: int, width: int, height: int):
+    """(scene, frames, gt masks) of one generated sequence, rendered once, kept in memory."""
+    scene = SyntheticScene(SceneConfig(width=width, height=height, n_frames=n_frames,
+                                       preset=preset, seed=seed))
+    frames, masks = [], []
+    for r in scene:
+        frames.append(_Frame(r.index, float(r.index), f"{r.index:05d}", r.image))
+        masks.append(r.mask)
+    return scene, frames, masks
+
+
+def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig) -> dict:
+    masks = {"none": None, "gt": list(gt_masks), "mona": "mona"}[variant]
+    t0 = time.perf_counter()
+    result = estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=masks, config=config)
+    wall = time.perf_counter() - t0
+    gt = Trajectory(np.arange(len(frames), dtype=float), scene.poses())
+    m = evaluate_trajectory(gt, Trajectory(result.vo.timestamps, result.vo.poses))
+    n = len(frames)
+    vo_seconds = sum(v for k, v in result.timings.items() if k.startswith("vo."))
+    mask_seconds = sum(v for k, v in result.timings.items() if k.startswith("masks."))
+    return {
+        "variant": variant, "ate": m.ate, "ate_pct": m.ate_percent_of_path,
+        "rpe_trans": m.rpe_trans, "rpe_rot_deg": m.rpe_rot_deg, "path_m": m.path_length,
+        "frames": n, "frames_with_pose": int(np.isfinite(result.vo.poses).all(axis=(1, 2)).sum()),
+        "low_confidence": int(result.vo.low_confidence.sum()),
+        "keyframes": int(result.vo.is_keyframe.sum()),
+        "vo_fps": n / vo_seconds if vo_seconds > 0 else float("nan"),
+        "mask_ms_per_frame": 1000 * mask_seconds / n,
+        "total_fps": n / wall,
+        "stage_seconds": {k: round(v, 3) for k, v in result.timings.items()},
+        "dropped": dict(result.vo.drops),
+    }
+
+
+def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
+              config: PipelineConfig | None = None, on_row=None) -> list[dict]:
+    config = config or PipelineConfig()
+    rows = []
+    for preset in presets:
+        for seed in seeds:
+            scene, frames, masks = render_sequence(preset, seed, n_frames, width, height)
+            coverage = float(np.mean([m.mean() for m in masks]))
+            for variant in variants:
+                row = {"preset": preset, "seed": seed, "coverage": coverage,
+                       **run_variant(scene, frames, masks, variant, config)}
+                rows.append(row)
+                if on_row is not None:
+                    on_row(row)
+            del frames, masks
+    return rows
+
+
+def peak_memory_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def summarize(rows: list[dict]) -> list[dict]:
+    """Mean and max ATE % per (preset, variant), and mean VO frames/s."""
+    out = []
+    keys = sorted({(r["preset"], r["variant"]) for r in rows}, key=lambda k: (k[0], k[1]))
+    for preset, variant in keys:
+        sel = [r for r in rows if r["preset"] == preset and r["variant"] == variant]
+        out.append({"preset": preset, "variant": variant, "n": len(sel),
+                    "ate_pct_mean": float(np.mean([r["ate_pct"] for r in sel])),
+                    "ate_pct_max": float(np.max([r["ate_pct"] for r in sel])),
+                    "ate_mean": float(np.mean([r["ate"] for r in sel])),
+                    "rpe_trans_mean": float(np.mean([r["rpe_trans"] for r in sel])),
+                    "rpe_rot_mean": float(np.mean([r["rpe_rot_deg"] for r in sel])),
+                    "vo_fps_mean": float(np.mean([r["vo_fps"] for r in sel])),
+                    "mask_ms_mean": float(np.mean([r["mask_ms_per_frame"] for r in sel])),
+                    "all_frames_posed": all(r["frames_with_pose"] == r["frames"] for r in sel)})
+    return out
+
+
+def format_row(r: dict) -> str:
+    return (f"{r['preset']:13s} seed {r['seed']:2d} {r['variant']:5s} cov {100 * r['coverage']:5.1f}%  "
+            f"ATE {r['ate']:.4f} m {r['ate_pct']:7.3f}% of {r['path_m']:5.2f} m  "
+            f"RPE {r['rpe_trans']:.4f} m {r['rpe_rot_deg']:.3f} deg  VO {r['vo_fps']:5.1f} fps  "
+            f"masks {r['mask_ms_per_frame']:5.1f} ms/frame  low-conf {r['low_confidence']}")
+
+
+def format_summary(summary: list[dict]) -> str:
+    lines = [f"{'preset':13s} {'variant':7s} {'n':>2s} {'ATE% mean':>9s} {'ATE% max':>9s} "
+             f"{'RPE m':>7s} {'RPE deg':>7s} {'VO fps':>7s} {'mask ms':>7s}"]
+    for s in summary:
+        lines.append(f"{s['preset']:13s} {s['variant']:7s} {s['n']:2d} {s['ate_pct_mean']:9.3f} "
+                     f"{s['ate_pct_max']:9.3f} {s['rpe_trans_mean']:7.4f} {s['rpe_rot_mean']:7.3f} "
+                     f"{s['vo_fps_mean']:7.1f} {s['mask_ms_mean']:7.1f}")
+    return "\n".join(lines)
+
+
+def parse_seeds(text: str) -> list[int]:
+    out = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out.extend(range(int(a), int(b) + 1) if b else [int(a)])
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--presets", default="static,one-large,several,fast-rotation")
+    ap.add_argument("--seeds", default="0-5")
+    ap.add_argument("--variants", default="none,gt,mona")
+    ap.add_argument("--frames", type=int, default=50)
+    ap.add_argument("--size", default="1024x436")
+    ap.add_argument("--set", action="append", default=[], help="config override key=value")
+    args = ap.parse_args(argv)
+    from mona_vo.config import load_config, parse_set_options
+
+    w, h = (int(v) for v in args.size.split("x"))
+    cfg = load_config(PipelineConfig, None, parse_set_options(args.set))
+    rows = benchmark(args.presets.split(","), parse_seeds(args.seeds), args.variants.split(","),
+                     n_frames=args.frames, width=w, height=h, config=cfg,
+                     on_row=lambda r: print(format_row(r), flush=True))
+    print()
+    print(format_summary(summarize(rows)))
+    print(f"peak memory {peak_memory_mb():.0f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

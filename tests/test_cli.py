@@ -1,0 +1,101 @@
+"""Every command through the real `mona-vo` entry point, on small generated inputs."""
+import json
+import subprocess
+
+import cv2
+import numpy as np
+import pytest
+
+from data_tools.tum import read_tum_trajectory
+from eval.metrics import Trajectory, evaluate_trajectory
+
+
+def cli(exe, *args, ok=True):
+    proc = subprocess.run([exe, "-q", *map(str, args)], capture_output=True, text=True, timeout=600)
+    if ok:
+        assert proc.returncode == 0, proc.stderr
+    return proc
+
+
+def test_help_of_every_command_explains_options(mona_vo_exe):
+    out = cli(mona_vo_exe, "--help").stdout
+    for command in ("run", "masks", "demo", "eval"):
+        assert command in out
+    run_help = cli(mona_vo_exe, "run", "--help").stdout
+    for option in ("--calib", "--masks", "--prompt", "--overlay", "--out", "--set", "--preset"):
+        assert option in run_help
+    for sub in ("traj", "masks"):
+        assert "--gt" in cli(mona_vo_exe, "eval", sub, "--help").stdout
+
+
+def test_run_with_given_masks_writes_trajectory_masks_report_and_plot(mona_vo_exe, small_scene, tmp_path):
+    folder, scene = small_scene
+    out = tmp_path / "run"
+    cli(mona_vo_exe, "run", folder, "--out", out, "--calib", folder / "calib.txt",
+        "--masks", folder / "masks", "--gt", folder / "groundtruth.txt")
+    ts, poses = read_tum_trajectory(out / "trajectory.txt")
+    assert len(ts) == len(scene) and np.array_equal(ts, np.arange(len(scene)))
+    # The estimate is a real trajectory: close to GT after Sim(3) alignment.
+    m = evaluate_trajectory(Trajectory(np.arange(len(scene), dtype=float), scene.poses()),
+                            Trajectory(ts, poses))
+    assert m.ate_percent_of_path < 5.0
+    masks = sorted(p.name for p in (out / "masks").iterdir())
+    assert masks == [f"{i:05d}.png" for i in range(len(scene))]
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"] == report["frames_with_pose"] == len(scene)
+    assert report["calibration"]["source"] == "given"
+    assert abs(report["calibration"]["fx"] - scene.intrinsics.fx) < 1e-6
+    assert report["frames_per_second"]["total"] > 0
+    assert set(report["dropped"]) >= {"ba_masked_observations", "ba_masked_landmarks"}
+    plot = cv2.imread(str(out / "trajectory.png"))
+    assert plot is not None and plot.shape[0] > 100 and plot.std() > 5
+    assert not [p for p in out.iterdir() if p.name.startswith(".")], "temporary files left behind"
+
+
+def test_run_without_masks_and_without_calibration(mona_vo_exe, small_scene, tmp_path):
+    folder, scene = small_scene
+    out = tmp_path / "run"
+    cli(mona_vo_exe, "run", folder, "--out", out, "--masks", "none")
+    assert not (out / "masks").exists()
+    report = json.loads((out / "report.json").read_text())
+    assert report["calibration"]["source"].startswith("60-degree")
+    assert len(read_tum_trajectory(out / "trajectory.txt")[0]) == len(scene)
+
+
+def test_eval_traj_prints_the_metrics_of_the_library(mona_vo_exe, small_scene, tmp_path):
+    folder, scene = small_scene
+    out = tmp_path / "run"
+    cli(mona_vo_exe, "run", folder, "--out", out, "--calib", folder / "calib.txt", "--masks", "none")
+    for align in ("sim3", "se3"):
+        got = json.loads(cli(mona_vo_exe, "eval", "traj", "--gt", folder / "groundtruth.txt",
+                             "--est", out / "trajectory.txt", "--align", align).stdout)
+        assert set(got) >= {"ate", "rpe_trans", "rpe_rot_deg", "n_matched", "scale"}
+        want = evaluate_trajectory(Trajectory(*read_tum_trajectory(folder / "groundtruth.txt")),
+                                   Trajectory(*read_tum_trajectory(out / "trajectory.txt")), align=align)
+        assert got["ate"] == pytest.approx(want.ate, abs=1e-12)
+        assert got["n_matched"] == len(scene)
+
+
+def test_eval_traj_kitti_format(mona_vo_exe, shared_subdir):
+    d = shared_subdir("evo_trajectories")
+    got = json.loads(cli(mona_vo_exe, "eval", "traj", "--gt", d / "KITTI_00_gt.txt",
+                         "--est", d / "KITTI_00_ORB.txt", "--format", "kitti", "--align", "se3").stdout)
+    # evo's own stored APE of this pair (res_files/orb_ape.zip) is 1.3034497145650266.
+    assert got["ate"] == pytest.approx(1.3034497145650266, abs=1e-6)
+
+
+def test_eval_masks_on_davis_gt(mona_vo_exe, shared_subdir):
+    gt = shared_subdir("davis2016") / "Annotations" / "480p" / "dog"
+    got = json.loads(cli(mona_vo_exe, "eval", "masks", "--pred", gt, "--gt", gt).stdout)
+    assert got == {"J_mean": 1.0, "F_mean": 1.0, "n_frames": 40}
+
+
+def test_errors_are_one_line_with_the_path_and_exit_1(mona_vo_exe, tmp_path):
+    missing = tmp_path / "nope.mp4"
+    proc = cli(mona_vo_exe, "run", missing, "--out", tmp_path / "o", ok=False)
+    assert proc.returncode == 1
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(missing) in lines[0] and "Traceback" not in proc.stderr
+    assert not (tmp_path / "o" / "trajectory.txt").exists()
+    proc = cli(mona_vo_exe, "run", tmp_path, "--out", tmp_path / "o", "--calib", "1,2,3", ok=False)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
