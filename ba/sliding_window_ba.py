@@ -6,10 +6,12 @@ Factors: one projection factor per observation with a robust kernel (Huber or Ca
 pixel residual; a prior on every *fixed* keyframe.
 
 Gauge: monocular BA is free in 7 degrees of freedom (rotation, translation and scale of the
-world). The caller fixes the oldest keyframes of the window (at least two with a baseline): their
-priors hold the world frame and the scale that earlier windows established, so consecutive
-windows agree with each other. Keyframes that left the window are never touched again (the
-LEAP-VO/DPVO fixed-lag scheme, instead of a marginal prior).
+world). The caller fixes the oldest keyframe(s) of the window with priors; with a single fixed
+keyframe, ``scale_anchor`` holds the distance from it to one more keyframe (a custom factor),
+which removes the last degree of freedom without freezing that keyframe's direction of travel.
+The fixed poses carry the world frame and scale that earlier windows established, so consecutive
+windows agree. Keyframes that left the window are never touched again (the LEAP-VO/DPVO
+fixed-lag scheme, instead of a marginal prior).
 
 Masks: a per-keyframe boolean moving-object mask may be given. An observation inside a mask is
 not added, and a landmark observed inside a mask in *any* keyframe of the window is dropped as a
@@ -60,6 +62,7 @@ class BAProblem:
     obs_kf, obs_lm: (M,) int64 keyframe / landmark id of each observation.
     obs_uv:       (M, 2) float64 observed pixels x, y.
     masks:        keyframe id -> (H, W) bool moving-object mask (optional per keyframe).
+    scale_anchor: optional (fixed keyframe id, other keyframe id, distance in world units).
     """
 
     poses: dict[int, np.ndarray]
@@ -70,6 +73,7 @@ class BAProblem:
     obs_lm: np.ndarray
     obs_uv: np.ndarray
     masks: dict[int, np.ndarray] = field(default_factory=dict)
+    scale_anchor: tuple[int, int, float] | None = None
 
 
 @dataclass
@@ -120,6 +124,20 @@ def focal_prior_error(focal0: float, this: gtsam.CustomFactor, values: gtsam.Val
     if jacobians is not None:
         jacobians[0] = np.ones((1, 1))
     return np.array([f - focal0])
+
+
+def distance_error(centre: np.ndarray, distance: float, this: gtsam.CustomFactor,
+                   values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
+    """Residual ||t - centre|| - distance (world units) of one Pose3's position: a scale prior.
+    With GTSAM's retraction T * Exp([w, v]) the position moves by R v to first order, so the
+    Jacobian is [0, 0, 0, u^T R] with u the unit direction from ``centre``."""
+    pose = values.atPose3(this.keys()[0])
+    d = pose.translation() - centre
+    n = float(np.linalg.norm(d))
+    if jacobians is not None:
+        u = d / max(n, 1e-12)
+        jacobians[0] = np.concatenate([np.zeros(3), u @ pose.rotation().matrix()]).reshape(1, 6)
+    return np.array([n - distance])
 
 
 def _noise(cfg: BAConfig):
@@ -192,6 +210,11 @@ def _solve(problem: BAProblem, cfg: BAConfig, usable: np.ndarray, keep_lm: np.nd
     gauge = gtsam.noiseModel.Isotropic.Sigma(6, cfg.gauge_sigma)  # rad (rotation first), then m
     for k in sorted(problem.fixed):
         graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(problem.poses[k]), gauge))
+    if problem.scale_anchor is not None:
+        ka, kb, dist = problem.scale_anchor
+        scale_noise = gtsam.noiseModel.Isotropic.Sigma(1, cfg.gauge_sigma)  # world units
+        graph.add(gtsam.CustomFactor(scale_noise, [X(kb)], functools.partial(
+            distance_error, problem.poses[ka][:3, 3].copy(), float(dist))))
     for j in keep_lm:
         values.insert(L(int(j)), np.asarray(problem.landmarks[int(j)], np.float64))
     for i in np.flatnonzero(usable):
@@ -245,7 +268,7 @@ def sliding_window_ba(problem: BAProblem, cfg: BAConfig = BAConfig(), *,
             usable, keep_lm = _constrained(obs_kf, obs_lm, usable & ~gross, free_kf,
                                            cfg.min_observations)
             warm = BAProblem(poses, problem.fixed, problem.intrinsics, landmarks, obs_kf, obs_lm,
-                             obs_uv)
+                             obs_uv, scale_anchor=problem.scale_anchor)
             poses, landmarks, focal, more = _solve(warm, cfg, usable, keep_lm, refine_focal,
                                                    focal_start=focal)
             iterations += more

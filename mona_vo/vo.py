@@ -46,14 +46,18 @@ class VOConfig:
     init_min_parallax_deg: float = 1.0      # median ray angle needed to initialise the map
     init_min_inliers: int = 40              # essential-matrix inliers needed to initialise
     init_max_frames: int = 20               # frames to wait for parallax before rotation-only poses
-    keyframe_parallax_px: float = 12.0      # median track motion since the last keyframe, px
+    init_keyframes: int = 4                 # keyframes of the first window (two-view pair included)
+    keyframe_parallax_px: float = 12.0      # median rotation-free track motion since the last keyframe, px
     keyframe_min_tracked: float = 0.6       # keyframe when this share of its landmarks remains
     keyframe_max_gap: int = 6               # at most this many frames between keyframes
+    keyframe_min_landmarks: int = 60        # keyframe when fewer landmarks than this are tracked
     window_keyframes: int = 8               # keyframes in the bundle-adjustment window
     fixed_keyframes: int = 2                # oldest window keyframes held fixed (gauge, scale)
+    gauge: str = "fixed"                    # fixed: hold fixed_keyframes; distance: hold the oldest
+                                            # keyframe and only its distance to the next one
     pnp_threshold_px: float = 2.0           # RANSAC inlier threshold for per-frame poses
     pnp_min_inliers: int = 12               # fewer PnP inliers means tracking is lost
-    triangulation_min_angle_deg: float = 1.0  # rays closer than this give no landmark
+    triangulation_min_angle_deg: float = 0.3  # rays closer than this give no landmark
     triangulation_max_error_px: float = 2.0   # nor do rays that miss each other by more
     dynamic_scale_px: float = 1.0           # Cauchy scale of a static point's residual, px
     dynamic_prob_max: float = 0.9           # tracks above this dynamic probability twice are dropped
@@ -138,6 +142,7 @@ class VisualOdometry:
         self._init_kf: _Keyframe | None = None
         self._pending: list[tuple[int, np.ndarray, np.ndarray, Intrinsics]] = []
         self._focal_fixed: float | None = None
+        self._bootstrapping = False
         self._speed_hint: float | None = None       # metres/frame before a re-initialisation
         self._last_gray = None
 
@@ -233,12 +238,16 @@ class VisualOdometry:
         return new_ids, pts.astype(np.float64)
 
     def _start_init(self, t, gray, ids, uv, intr, mask, T_world_cam: np.ndarray) -> None:
-        # Drop the old tracks: the new map is built from a fresh grid on this frame.
-        self.tracker.remove(self.tracker.live().ids)
-        new_ids, new_uv = self._new_points(gray, None, mask)
-        self._init_kf = _Keyframe(t, T_world_cam, intr, new_ids, new_uv, mask)
-        self._pending = []
-        self._record(t, BOOTSTRAP if self.keyframes else ROTATION_ONLY, len(new_ids),
+        """Make frame t the first keyframe of a map to be. Live tracks carry on, so frames that
+        waited for an earlier attempt still share points with the map once it exists."""
+        if self._init_kf is not None:
+            old = self._init_kf
+            self._pending.append((old.frame, old.ids, old.uv, old.intr))
+        self._pending = self._pending[-self.cfg.init_max_frames * 3:]
+        new_ids, new_uv = self._new_points(gray, uv, mask)
+        self._init_kf = _Keyframe(t, T_world_cam, intr, np.concatenate([ids, new_ids]),
+                                  np.concatenate([uv, new_uv]), mask)
+        self._record(t, BOOTSTRAP if self.keyframes else ROTATION_ONLY, len(ids),
                      T_world_cam=T_world_cam)
 
     def _step_init(self, t, gray, ids, uv, intr, mask) -> None:
@@ -297,28 +306,44 @@ class VisualOdometry:
             return False
         for i, p in zip(tid[good], X[good]):
             self.landmarks[int(i)] = p
-        # Both keyframes join the window; frames in between get poses by PnP below.
         k0 = _Keyframe(kf0.frame, kf0.T_world_cam, kf0.intr, kf0.ids, kf0.uv, kf0.mask)
         self.keyframes[k0.frame] = k0
         self.window.append(k0.frame)
         self._record(k0.frame, KEYFRAME, int(good.sum()), ref=k0.frame)
         self._init_kf = None
         self.state = "track"
-        self._make_keyframe(t, gray, ids, uv, intr, mask, T1, int(good.sum()))
+        # Every frame that waited for the map gets a real pose now, by PnP on the new landmarks;
+        # one that sees too few of them keeps its provisional pose (between the two keyframes:
+        # interpolated; before the first: rotation-only).
+        posed = []
         for (tp, pids, puv, pintr) in self._pending[:-1]:
-            T, n = self._pnp(pids, puv, pintr, self._pose_of(k0.frame))
-            if T is None:
-                T = self._interpolate(k0.frame, t, tp)
-                self._record(tp, BOOTSTRAP, 0, ref=k0.frame, T_kf_frame=invert_pose(k0.T_world_cam) @ T)
-            else:
-                self._record(tp, BOOTSTRAP, n, ref=k0.frame, T_kf_frame=invert_pose(k0.T_world_cam) @ T)
+            T, n = self._pnp(pids, puv, pintr)
+            if T is not None and tp > k0.frame:
+                posed.append((tp, pids, puv, pintr, T, n))
+            if T is None and tp > k0.frame:
+                T, n = self._interpolate(k0.frame, t, tp, T1), 0
+            if T is not None:
+                self._record(tp, BOOTSTRAP, n, ref=k0.frame,
+                             T_kf_frame=invert_pose(k0.T_world_cam) @ T)
         self._pending = []
+        # Like LEAP-VO's 8-frame start, a few of those frames join the first window: two views
+        # of a near-planar or low-parallax scene leave the structure ambiguous, more views fix it.
+        n_mid = max(0, self.cfg.init_keyframes - 2)
+        if posed and n_mid:
+            pick = np.unique(np.linspace(0, len(posed) - 1, n_mid + 2).round().astype(int)[1:-1])
+            for tp, pids, puv, pintr, T, n in (posed[i] for i in pick):
+                self.keyframes[tp] = _Keyframe(tp, T, pintr, pids, puv, None)
+                self.window.append(tp)
+                self._record(tp, KEYFRAME, n, ref=tp)
+        self._bootstrapping = True
+        self._make_keyframe(t, gray, ids, uv, intr, mask, T1, int(good.sum()))
+        self._bootstrapping = False
         return True
 
-    def _interpolate(self, ka: int, kb: int, t: int) -> np.ndarray:
+    def _interpolate(self, ka: int, kb: int, t: int, Tb: np.ndarray) -> np.ndarray:
         from scipy.spatial.transform import Rotation, Slerp
 
-        Ta, Tb = self._pose_of(ka), self._pose_of(kb)
+        Ta = self._pose_of(ka)
         a = (t - ka) / max(kb - ka, 1)
         R = Slerp([0, 1], Rotation.from_matrix([Ta[:3, :3], Tb[:3, :3]]))(a).as_matrix()
         return make_pose(R, (1 - a) * Ta[:3, 3] + a * Tb[:3, 3])
@@ -331,19 +356,17 @@ class VisualOdometry:
             return T2 @ (invert_pose(T1) @ T2)
         return self._pose_of(t - 1) if t >= 1 else np.eye(4)
 
-    def _pnp(self, ids, uv, intr, T_guess) -> tuple[np.ndarray | None, int]:
+    def _pnp(self, ids, uv, intr) -> tuple[np.ndarray | None, int]:
         have = np.array([int(i) in self.landmarks for i in ids], bool)
         if have.sum() < max(6, self.cfg.pnp_min_inliers):
             return None, int(have.sum())
         P = np.array([self.landmarks[int(i)] for i in ids[have]])
         q = uv[have]
-        Tcw = invert_pose(T_guess)
-        rvec, _ = cv2.Rodrigues(Tcw[:3, :3])
-        tvec = Tcw[:3, 3].copy()
+        # Minimal AP3P samples need no initial guess (frames far from the prediction, e.g. those
+        # waiting for the map, still work); the LM refinement below restores full accuracy.
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            P, q, intr.K, None, rvec=rvec, tvec=tvec, useExtrinsicGuess=True,
-            iterationsCount=100, reprojectionError=self.cfg.pnp_threshold_px, confidence=0.999,
-            flags=cv2.SOLVEPNP_ITERATIVE)
+            P, q, intr.K, None, iterationsCount=100, reprojectionError=self.cfg.pnp_threshold_px,
+            confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
         if not ok or inl is None or len(inl) < self.cfg.pnp_min_inliers:
             return None, 0 if inl is None else len(inl)
         inl = inl.ravel()
@@ -390,7 +413,7 @@ class VisualOdometry:
     def _step_track(self, t, gray, ids, uv, intr, mask) -> None:
         t0 = time.perf_counter()
         T_guess = self._predict(t)
-        T, n_inl = self._pnp(ids, uv, intr, T_guess)
+        T, n_inl = self._pnp(ids, uv, intr)
         if T is None:
             # Lost: keep a pose (extrapolated), remember the speed, start a new map here.
             self.drops["tracking_lost"] += 1
@@ -408,22 +431,28 @@ class VisualOdometry:
         self.timings["pose"] += time.perf_counter() - t0
 
         last = self.keyframes[self.window[-1]]
-        if self._needs_keyframe(t, last, ids, uv):
+        if self._needs_keyframe(t, last, ids, uv, intr, T):
             self._make_keyframe(t, gray, ids, uv, intr, mask, T, n_inl)
         else:
             self._record(t, TRACKED, n_inl, ref=last.frame,
                          T_kf_frame=invert_pose(last.T_world_cam) @ T)
 
-    def _needs_keyframe(self, t, last: _Keyframe, ids, uv) -> bool:
+    def _needs_keyframe(self, t, last: _Keyframe, ids, uv, intr, T_world_cam) -> bool:
         if t - last.frame >= self.cfg.keyframe_max_gap:
             return True
         common, i0, i1 = np.intersect1d(last.ids, ids, return_indices=True)
         if len(common) == 0:
             return True
-        parallax = np.median(np.linalg.norm(last.uv[i0] - uv[i1], axis=1))
+        # Parallax after removing the rotation since the keyframe: a fast pan moves every point
+        # but adds no baseline, and keyframes without baseline only add scale drift.
+        R = (invert_pose(last.T_world_cam) @ T_world_cam)[:3, :3]
+        ang = rotation_parallax_deg(last.uv[i0], uv[i1], last.intr, intr, R)
+        parallax_px = np.radians(np.median(ang)) * intr.fx
         lm_last = sum(int(i) in self.landmarks for i in last.ids)
         lm_now = sum(int(i) in self.landmarks for i in common)
-        return parallax >= self.cfg.keyframe_parallax_px or lm_now < self.cfg.keyframe_min_tracked * max(lm_last, 1)
+        return (parallax_px >= self.cfg.keyframe_parallax_px
+                or lm_now < self.cfg.keyframe_min_tracked * max(lm_last, 1)
+                or lm_now < self.cfg.keyframe_min_landmarks)
 
     # ----------------------------------------------------------------- mapping
     def _make_keyframe(self, t, gray, ids, uv, intr, mask, T_world_cam, n_inl) -> None:
@@ -464,8 +493,15 @@ class VisualOdometry:
             return
         t0 = time.perf_counter()
         kfs = [self.keyframes[k] for k in self.window]
-        n_fixed = min(self.cfg.fixed_keyframes, len(kfs) - 1) if len(kfs) > 2 else 2
-        fixed = {kf.frame for kf in kfs[:n_fixed]}
+        anchor = None
+        if self._bootstrapping or self.cfg.gauge == "distance":
+            # The first window (built on the essential matrix) always takes the minimal gauge:
+            # freezing two of its keyframes would freeze any error of the two-view solution.
+            fixed = {kfs[0].frame}
+            d = float(np.linalg.norm(kfs[1].T_world_cam[:3, 3] - kfs[0].T_world_cam[:3, 3]))
+            anchor = (kfs[0].frame, kfs[1].frame, d)
+        else:
+            fixed = {kf.frame for kf in kfs[:min(self.cfg.fixed_keyframes, len(kfs) - 1)]}
         obs_kf = np.concatenate([np.full(len(kf.ids), kf.frame) for kf in kfs])
         obs_lm = np.concatenate([kf.ids for kf in kfs])
         obs_uv = np.concatenate([kf.uv for kf in kfs])
@@ -476,7 +512,7 @@ class VisualOdometry:
             poses={kf.frame: kf.T_world_cam for kf in kfs}, fixed=fixed,
             intrinsics={kf.frame: kf.intr for kf in kfs}, landmarks=lms,
             obs_kf=obs_kf, obs_lm=obs_lm, obs_uv=obs_uv,
-            masks={kf.frame: kf.mask for kf in kfs if kf.mask is not None})
+            masks={kf.frame: kf.mask for kf in kfs if kf.mask is not None}, scale_anchor=anchor)
         refine = self.cfg.refine_focal and self._focal_fixed is None
         res = sliding_window_ba(problem, self.cfg.ba, refine_focal=refine)
         for kf in kfs:

@@ -161,3 +161,40 @@ def test_shared_focal_is_refined_with_rotation_in_the_window():
     res = sliding_window_ba(BAProblem(init, {0, 1}, {k: guess for k in poses}, lms, kf, lm, uv),
                             BAConfig(max_iterations=50), refine_focal=True)
     assert abs(res.focal - 500.0) < abs(560.0 - 500.0) / 3
+
+
+def test_distance_prior_jacobian_matches_numeric():
+    from functools import partial
+
+    from ba.sliding_window_ba import distance_error
+
+    key = gtsam.symbol("x", 1)
+    pose = gtsam.Pose3(gtsam.Rot3.Ypr(0.3, -0.2, 0.1), np.array([1.0, -2.0, 0.5]))
+    centre = np.array([0.2, 0.1, -0.3])
+    factor = gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, 1.0), [key],
+                                partial(distance_error, centre, 2.0))
+    values = gtsam.Values()
+    values.insert(key, pose)
+    jac = [np.zeros((1, 6))]
+    err = distance_error(centre, 2.0, factor, values, jac)
+    numeric = np.zeros(6)
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = 1e-6
+        moved = gtsam.Values()
+        moved.insert(key, pose.retract(d))
+        numeric[i] = (distance_error(centre, 2.0, factor, moved, None) - err)[0] / 1e-6
+    assert np.allclose(jac[0].ravel(), numeric, atol=1e-5)
+
+
+def test_one_fixed_keyframe_and_a_distance_fix_the_gauge_and_scale():
+    poses, pts, kf, lm, uv, rng = _scene(seed=5)
+    init, lms = _perturb(poses, pts, rng, {0})
+    dist = float(np.linalg.norm(poses[1][:3, 3] - poses[0][:3, 3]))
+    res = sliding_window_ba(BAProblem(init, {0}, {k: INTR for k in poses}, lms, kf, lm, uv,
+                                      scale_anchor=(0, 1, dist)), BAConfig(max_iterations=30))
+    assert np.allclose(res.poses[0], poses[0], atol=1e-5)
+    got = np.linalg.norm(res.poses[1][:3, 3] - res.poses[0][:3, 3])
+    assert abs(got - dist) < 1e-4
+    t_err, r_err = _errors(res.poses, poses)
+    assert t_err < 0.03 and r_err < 0.2
