@@ -88,6 +88,31 @@ def build_parser() -> argparse.ArgumentParser:
     em.add_argument("--pred", required=True, help="folder of predicted mask PNGs")
     em.add_argument("--gt", required=True, help="folder of ground-truth mask PNGs (same file names)")
     em.set_defaults(func=_cmd_eval_masks)
+
+    es = esub.add_parser("sintel", help="MPI Sintel camera-trajectory benchmark and the paper's ablations",
+                         description="Runs every sequence x variant, writes DIR/results.csv, results.json, "
+                                     "results.md and DIR/<variant>/<seq>/trajectory.txt. Rerunning skips "
+                                     "runs already done with the same config and retries failed ones.")
+    es.add_argument("--root", required=True, help="Sintel root (the folder holding training/)")
+    es.add_argument("--pass", dest="pass_", choices=["final", "clean"], default="final", help="render pass (default final)")
+    es.add_argument("--seqs", help="comma-separated sequences (default: the 14 of the protocol)")
+    es.add_argument("--variants", default="none,mona",
+                    help="comma-separated: none, mona, mona-points, mona-raw-boxes, gt (default none,mona)")
+    es.add_argument("--masks-root", help="folder of GT masks <seq>/frame_XXXX.png, for the gt variant")
+    es.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    es.add_argument("--workers", type=int, default=1, help="runs in parallel (processes)")
+    _add_config_options(es)
+    es.set_defaults(func=_cmd_eval_sintel)
+
+    eu = esub.add_parser("tum", help="folders in TUM RGB-D layout (TUM, Bonn, ETH3D): ATE/RPE per variant")
+    eu.add_argument("--root", required=True, action="append",
+                    help="a folder with rgb.txt, rgb/ and groundtruth.txt (repeatable)")
+    eu.add_argument("--variants", default="none,mona", help="comma-separated: none, mona, mona-points, mona-raw-boxes")
+    eu.add_argument("--calib", metavar="fx,fy,cx,cy|FILE", help="intrinsics (default: the folder's calib.txt, else a guess)")
+    eu.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    eu.add_argument("--workers", type=int, default=1, help="runs in parallel (processes)")
+    _add_config_options(eu)
+    eu.set_defaults(func=_cmd_eval_tum)
     return p
 
 
@@ -170,6 +195,55 @@ def _cmd_eval_masks(args) -> int:
     m = evaluate_mask_folders(args.pred, args.gt)
     print(json.dumps({"J_mean": m.J_mean, "F_mean": m.F_mean, "n_frames": m.n_frames}))
     return 0
+
+
+def _print_summary(rows) -> None:
+    from eval.harness import summarize
+
+    for s in summarize(rows):
+        ate = "-" if s["ate"] is None else f"{s['ate']:.4f}"
+        rpe = "-" if s["rpe_trans"] is None else f"{s['rpe_trans']:.4f} m / {s['rpe_rot_deg']:.3f} deg"
+        print(f"{s['variant']:15s} ATE {ate}  RPE {rpe}  ok {s['ok']}/{s['sequences']}")
+    failed = [r for r in rows if r.get("status") != "ok"]
+    for r in failed:
+        print(f"  {r['sequence']} [{r['variant']}]: {r.get('status')}")
+
+
+def _cmd_eval_sintel(args) -> int:
+    from eval.datasets import sintel_sequences
+    from eval.harness import evaluate, parse_variants
+
+    variants = parse_variants(args.variants)
+    if "gt" in variants and not args.masks_root:
+        from mona_vo.errors import ConfigError
+
+        raise ConfigError("variant 'gt' needs --masks-root (folder of <seq>/frame_XXXX.png masks)")
+    seqs = sintel_sequences(args.root, pass_=args.pass_, masks_root=args.masks_root,
+                            names=args.seqs.split(",") if args.seqs else None)
+    rows = evaluate(seqs, variants, args.out, config=_pipeline_config(args), workers=args.workers,
+                    extra_hash={"dataset": "sintel", "pass": args.pass_}, progress=not args.quiet)
+    _print_summary(rows)
+    print(f"wrote {args.out}/results.md")
+    return 0 if all(r.get("status") == "ok" for r in rows) else 1
+
+
+def _cmd_eval_tum(args) -> int:
+    from data_tools.calibration import parse_calibration
+    from eval.datasets import tum_sequences
+    from eval.harness import evaluate, parse_variants
+
+    variants = parse_variants(args.variants)
+    if "gt" in variants:
+        from mona_vo.errors import ConfigError
+
+        raise ConfigError("TUM-layout folders carry no moving-object masks: variant 'gt' is not available")
+    calib = parse_calibration(args.calib) if args.calib else None
+    seqs = tum_sequences(args.root, calib=calib)
+    rows = evaluate(seqs, variants, args.out, config=_pipeline_config(args), workers=args.workers,
+                    extra_hash={"dataset": "tum"}, progress=not args.quiet)
+    _print_summary(rows)
+    print(f"wrote {args.out}/results.md")
+    return 0 if all(r.get("status") == "ok" for r in rows) else 1
 
 
 def main(argv: list[str] | None = None) -> int:

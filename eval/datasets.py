@@ -1,0 +1,66 @@
+"""Dataset readers behind the evaluation harness: each turns a dataset folder into
+:class:`eval.harness.EvalSequence` objects. All file reading goes through data_tools."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from data_tools.masks_io import read_mask_folder
+from data_tools.sintel import SintelSequence, list_sequences as list_sintel
+from data_tools.tum import TumSequence
+from eval.harness import EvalSequence
+from eval.metrics import Trajectory
+from mona_vo.conventions import Intrinsics
+from mona_vo.errors import InputError
+
+# The 14 sequences of the Sintel camera-trajectory protocol (LEAP-VO, ParticleSfM, MONA).
+SINTEL_SEQUENCES = ("alley_2", "ambush_4", "ambush_5", "ambush_6", "cave_2", "cave_4", "market_2",
+                    "market_5", "market_6", "shaman_3", "sleeping_1", "sleeping_2", "temple_2",
+                    "temple_3")
+
+
+def sintel_sequences(root: str | Path, *, pass_: str = "final", names: list[str] | None = None,
+                     masks_root: str | Path | None = None) -> list[EvalSequence]:
+    """The named sequences (default: the protocol's 14) of a Sintel-layout root. GT masks are
+    read from ``masks_root/<seq>/frame_XXXX.png`` when given. Checks everything up front."""
+    root = Path(root)
+    if not (root / "training").is_dir():
+        raise InputError(f"{root}: not a Sintel root (no training/ folder)")
+    present = list_sintel(root, pass_)
+    wanted = list(names) if names else list(SINTEL_SEQUENCES)
+    missing = [n for n in wanted if n not in present]
+    if missing:
+        raise InputError(f"{root}: sequence(s) {', '.join(missing)} missing from training/{pass_}/"
+                         f" (present: {', '.join(present) or 'none'})")
+    out = []
+    for name in wanted:
+        seq = SintelSequence(root, name, pass_)   # missing folders: an error for the whole run
+        try:
+            # Damaged files inside one sequence fail that sequence only.
+            intr = seq.intrinsics()
+            ts, poses = seq.groundtruth()
+            frames = seq.frames()
+            gt_masks = None
+            if masks_root is not None:
+                folder = read_mask_folder(Path(masks_root) / name, seq.names, (frames.width, frames.height))
+                gt_masks = (lambda f=folder: iter(f))
+        except InputError as exc:
+            out.append(EvalSequence(name=name, frames=seq.frames, n_frames=len(seq), intrinsics=None,
+                                    gt=None, error=str(exc)))
+            continue
+        out.append(EvalSequence(name=name, frames=seq.frames, n_frames=len(seq), intrinsics=intr,
+                                gt=Trajectory(ts, poses), gt_masks=gt_masks, max_diff=0.01))
+    return out
+
+
+def tum_sequences(roots: list[str | Path], *, calib: Intrinsics | None = None) -> list[EvalSequence]:
+    """Folders in TUM RGB-D layout (rgb.txt, rgb/, groundtruth.txt, optional calib.txt). Poses
+    are stamped with rgb.txt's timestamps and associated with the GT by evo's rule (10 ms)."""
+    out = []
+    for root in roots:
+        seq = TumSequence(root)
+        intr = calib or seq.intrinsics()
+        ts, poses = seq.groundtruth()
+        out.append(EvalSequence(name=Path(root).resolve().name, frames=seq.frames,
+                                n_frames=len(seq.timestamps), intrinsics=intr,
+                                gt=Trajectory(ts, poses), gt_masks=None, max_diff=0.01))
+    return out
