@@ -1,0 +1,182 @@
+"""Benchmarks of the MONA masks (:mod:`mona_vo.masks`): quality on generated scenes with exact
+ground truth, DAVIS-2016 J and F per prompt mode, and seconds per frame per stage.
+
+Library functions return plain rows (lists of dicts); only ``python -m eval.mask_bench`` prints.
+
+* :func:`synthetic_rows`: per preset and seed of :mod:`data_tools.synthetic`, the mean over frames
+  of the mask IoU against the GT mask (DAVIS J, 1 when both masks are empty), boundary F, and the
+  false-positive area (mask pixels outside the GT mask, fraction of the image); presets without
+  movers ('static') are judged by the false-positive area.
+* :func:`davis_rows`: DAVIS J and F (all frames, :func:`eval.mask_metrics.evaluate_mask_sequence`)
+  per sequence and prompt mode ('boxes', 'points', 'raw-boxes').
+* :func:`speed_rows`: wall-clock seconds per frame of each stage (``MaskFrame.seconds``) on a
+  1024 x 436 input (the real Sintel clip when present, else a generated scene; decoding and
+  rendering are not timed).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from eval.mask_metrics import boundary_f, evaluate_mask_sequence, region_similarity
+from mona_vo.masks import STAGES, MaskConfig, MonaMasker
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DYNAMIC_PRESETS = ("one-large", "several", "fast-rotation")
+
+
+def _masks(frames: Iterable[tuple[int, np.ndarray]], config: MaskConfig, intrinsics=None):
+    """MaskFrames of (index, image) pairs, streamed."""
+    masker = MonaMasker(config, intrinsics)
+    for index, image in frames:
+        yield from masker.push(index, image)
+    yield from masker.flush()
+
+
+def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
+                   seeds: Sequence[int] = (0, 1, 2), n_frames: int = 30, width: int = 1024,
+                   height: int = 436, config: MaskConfig | None = None,
+                   use_intrinsics: bool = False) -> list[dict]:
+    """One row per (preset, seed): J (mean IoU), F, false-positive area fraction, mask and GT area
+    fractions, frames. ``use_intrinsics`` passes the scene's true intrinsics to the masker
+    (default: the masker's uncalibrated guess, as for an online video)."""
+    from data_tools.synthetic import SceneConfig, SyntheticScene
+
+    config = config or MaskConfig()
+    rows = []
+    for preset in presets:
+        for seed in seeds:
+            scene = SyntheticScene(SceneConfig(width=width, height=height, n_frames=n_frames,
+                                               preset=preset, seed=seed))
+            gts: dict[int, np.ndarray] = {}
+
+            def frames():
+                for i in range(len(scene)):
+                    f = scene.render(i)
+                    gts[i] = f.mask
+                    yield i, f.image
+
+            J, F, fp, area, gt_area = [], [], [], [], []
+            for out in _masks(frames(), config, scene.intrinsics if use_intrinsics else None):
+                gt = gts.pop(out.index)
+                J.append(region_similarity(out.mask, gt))
+                F.append(boundary_f(out.mask, gt))
+                fp.append(float(np.mean(out.mask & ~gt)))
+                area.append(float(out.mask.mean()))
+                gt_area.append(float(gt.mean()))
+            rows.append({"preset": preset, "seed": seed, "frames": len(J),
+                         "J": float(np.mean(J)), "F": float(np.mean(F)),
+                         "fp_area": float(np.mean(fp)), "mask_area": float(np.mean(area)),
+                         "gt_area": float(np.mean(gt_area))})
+    return rows
+
+
+def summarise(rows: list[dict], key: str = "preset") -> list[dict]:
+    """Means of the numeric fields of ``rows`` grouped by ``key``."""
+    out = []
+    for value in dict.fromkeys(r[key] for r in rows):
+        group = [r for r in rows if r[key] == value]
+        row = {key: value, "runs": len(group)}
+        for k, v in group[0].items():
+            if isinstance(v, float):
+                row[k] = float(np.mean([g[k] for g in group]))
+        out.append(row)
+    return out
+
+
+def davis_rows(root: str | Path | None = None, sequences: Sequence[str] = ("car-shadow", "dog"),
+               modes: Sequence[str] = ("boxes", "points", "raw-boxes"),
+               config: MaskConfig | None = None, max_frames: int | None = None) -> list[dict]:
+    """One row per (sequence, prompt mode): J and F means over all frames."""
+    from data_tools.davis import DavisSequence
+
+    root = Path(root) if root is not None else SHARED_DATA / "davis2016"
+    config = config or MaskConfig()
+    rows = []
+    for seq in sequences:
+        ds = DavisSequence(root, seq)
+        for mode in modes:
+            cfg = dataclasses.replace(config, prompt=mode)
+            frames = ((f.index, f.image) for f in ds.frames(max_frames=max_frames))
+            preds = [out.mask for out in _masks(frames, cfg)]
+            gts = [m for m, _ in zip(ds.masks(), preds)]
+            metrics = evaluate_mask_sequence(preds, gts)
+            rows.append({"sequence": seq, "prompt": mode, "frames": metrics.n_frames,
+                         "J": metrics.J_mean, "F": metrics.F_mean})
+    return rows
+
+
+def speed_rows(n_frames: int = 25, config: MaskConfig | None = None,
+               sintel_dir: str | Path | None = None) -> list[dict]:
+    """Seconds per frame of each stage, and in total, at 1024 x 436: one row per stage with the
+    mean and median over frames (frames decoded or rendered before timing)."""
+    config = config or MaskConfig()
+    folder = Path(sintel_dir) if sintel_dir is not None else \
+        SHARED_DATA / "sintel_clip_alley" / "training" / "clean" / "alley_1"
+    if folder.is_dir():
+        from data_tools.frames import open_frames
+
+        images = [f.image for f in open_frames(folder, max_frames=n_frames)]
+        source = f"sintel alley_1 ({len(images)} frames)"
+    else:
+        from data_tools.synthetic import SceneConfig, SyntheticScene
+
+        scene = SyntheticScene(SceneConfig(width=1024, height=436, n_frames=n_frames,
+                                           preset="one-large", seed=0))
+        images = [scene.render(i).image for i in range(n_frames)]
+        source = f"synthetic one-large ({n_frames} frames)"
+    per_stage = {s: [] for s in STAGES}
+    totals = []
+    t0 = time.perf_counter()
+    for out in _masks(enumerate(images), config):
+        for s in STAGES:
+            per_stage[s].append(out.seconds.get(s, 0.0))
+        totals.append(sum(out.seconds.values()))
+    wall = (time.perf_counter() - t0) / max(len(images), 1)
+    h, w = images[0].shape[:2]
+    rows = [{"stage": s, "mean_ms": 1000 * float(np.mean(v)),
+             "median_ms": 1000 * float(np.median(v))} for s, v in per_stage.items()]
+    rows.append({"stage": "total (sum of stages)", "mean_ms": 1000 * float(np.mean(totals)),
+                 "median_ms": 1000 * float(np.median(totals))})
+    rows.append({"stage": "wall clock per frame", "mean_ms": 1000 * wall,
+                 "median_ms": float("nan")})
+    for r in rows:
+        r["input"] = f"{source}, {w} x {h}"
+    return rows
+
+
+def format_table(rows: list[dict]) -> str:
+    """Plain-text table of rows (floats with 3 decimals)."""
+    if not rows:
+        return "(no rows)"
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+
+    def cell(v):
+        return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+    width = {k: max(len(k), *(len(cell(r.get(k, ""))) for r in rows)) for k in keys}
+    lines = ["  ".join(k.ljust(width[k]) for k in keys)]
+    lines += ["  ".join(cell(r.get(k, "")).ljust(width[k]) for k in keys) for r in rows]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print("== speed (ms per frame per stage) ==")
+    print(format_table(speed_rows()))
+    if (SHARED_DATA / "davis2016").is_dir():
+        print("\n== DAVIS-2016 (J, F) per prompt mode ==")
+        print(format_table(davis_rows()))
+    try:
+        import data_tools.synthetic  # noqa: F401
+    except ImportError:
+        print("\n(data_tools.synthetic not available: synthetic benchmark skipped)")
+    else:
+        rows = synthetic_rows()
+        print("\n== synthetic scenes, per seed ==")
+        print(format_table(rows))
+        print("\n== synthetic scenes, per preset (J = mean IoU; static: fp_area) ==")
+        print(format_table(summarise(rows)))

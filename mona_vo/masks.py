@@ -1,0 +1,425 @@
+"""MONA moving-object masks, streamed: frames -> tracks -> dynamic points -> boxes -> masks.
+
+:class:`MonaMasker` is fed one frame at a time (``push``) and returns the masks that became
+ready; ``flush`` returns the rest at the end of the input. Every input frame gets exactly one
+:class:`MaskFrame`, in input order, at most ``lag`` frames after it was pushed
+(``lag = max(dynamic_points.window - 1, motion_gap)``): a frame's dynamic points need the rest of
+its track window, and its motion map looks ``motion_gap`` frames ahead. Only those frames'
+images, flows and track windows are held, so memory does not grow with the input length.
+
+Per frame t (stages timed in ``MaskFrame.seconds``):
+
+``flow``            optical flow t -> t+1 (``config.flow``); ``m_t`` its mean magnitude; the
+                    flow is kept at the analysis resolution (``analysis_width``).
+``tracking``        anchor and detection points through the window (``config.tracker``).
+``dynamic_points``  camera motion per window pair, residuals, Cauchy probabilities and the
+                    adaptive threshold (:mod:`mona_vo.dynamic_points`).
+``motion_map``      the flows t -> t+G chained (G: the fewest frames whose mean flow adds up
+                    to ``motion_travel_px``, at most ``motion_gap``, fewer at the end; a chain
+                    whose step jumps -- an occlusion -- falls back to the single step), the
+                    camera motion fitted robustly to that flow at the frame's max-texture grid
+                    points (the anchor rule, on a finer grid; homography or epipolar as the
+                    frame's track window chose), and each pixel's residual against it, in
+                    pixels per frame (:func:`mona_vo.dynamic_points.residual_map`). With
+                    ``motion_memory`` > 0 the previous frame's map, carried along the flow and
+                    scaled by it, is a floor (a mover stays found in a frame where its motion
+                    happens to run along its epipolar lines). The map is thresholded at
+                    ``motion_theta = max(theta_t, noise_factor * 1.4826 * median)``, the median over
+                    the map's non-zero pixels.
+``detection``       boxes (``config.detector``; ``motion`` uses the motion map).
+``box_filter``      the paper's adaptive filter with ``tau0`` (:mod:`mona_vo.box_filter`).
+``segmentation``    the prompts (``config.prompt``) to ``config.segmenter``.
+
+Prompt modes (the paper's ablation, Fig. 3): ``boxes`` (the method: filtered boxes),
+``raw-boxes`` (every detector box, no filter), ``points`` (the dynamic points only).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Iterable, Iterator
+
+import cv2
+import numpy as np
+
+from mona_vo.box_filter import UNIT_RULES, BoxFilterResult, adaptive_box_filter
+from mona_vo.conventions import Intrinsics
+from mona_vo.detection import (DETECTORS, Boxes, Detector, FrameContext, MotionDetectorConfig)
+from mona_vo.dynamic_points import (NO_MODEL, DynamicPoints, DynamicPointsConfig,
+                                    DynamicPointsTracker, adaptive_threshold, classify_window,
+                                    default_intrinsics, fit_camera_motion, residual_map)
+from mona_vo.errors import ConfigError, InputError
+from mona_vo.flow import FLOWS, DISFlowConfig, Flow, chain_flows, mean_flow_magnitude, resize_flow
+from mona_vo.point_selection import grid_points, texture_score
+from mona_vo.segmentation import SEGMENTERS, GrabCutConfig, Segmenter
+from mona_vo.tracking import TRACKERS, Tracker, to_gray
+
+PROMPT_MODES = ("boxes", "points", "raw-boxes")
+STAGES = ("flow", "tracking", "dynamic_points", "motion_map", "detection", "box_filter",
+          "segmentation")
+
+
+@dataclass(frozen=True)
+class MaskConfig:
+    """Settings of the mask pipeline; back ends by registry name, one section per classical one."""
+
+    flow: str = "dis"                       # optical flow back end (mona_vo.flow.FLOWS)
+    tracker: str = "lk"                     # point tracker back end (mona_vo.tracking.TRACKERS)
+    detector: str = "motion"                # box detector back end (mona_vo.detection.DETECTORS)
+    segmenter: str = "grabcut"              # segmenter back end (mona_vo.segmentation.SEGMENTERS)
+    device: str = "cpu"                     # torch device of neural back ends (cpu works)
+    prompt: str = "boxes"                   # boxes (filtered; the method) | points | raw-boxes
+    tau0: float = 3.0                       # dynamic points the unit box must hold (count)
+    box_filter_unit: str = "smallest-qualifying"  # unit box rule: smallest-qualifying | smallest
+    analysis_width: int = 256               # width of the motion map, pixels
+    motion_gap: int = 8                     # G_max: motion map from the flow t -> t+G, frames
+    motion_travel_px: float = 24.0          # G is the fewest frames whose m_t add up to this, px
+    motion_memory: float = 0.5              # the previous map, moved along the flow and times
+                                            # this (0: off), is a floor of the next one
+    chain_change_px: float = 1.0            # a chained step may differ from the one before by
+    chain_change_frac: float = 0.3          # this (full-res px) + this x its length, else the
+                                            # chain counts as broken (occlusion)
+    motion_grid_cols: int = 24              # motion-map camera fit: grid columns (anchor rule)
+    motion_grid_rows: int = 10              # motion-map camera fit: grid rows
+    motion_model_threshold_px: float = 0.25  # robust-fit threshold of that fit, analysis pixels
+    dynamic_points: DynamicPointsConfig = field(default_factory=DynamicPointsConfig)  # module 1
+    dis: DISFlowConfig = field(default_factory=DISFlowConfig)            # 'dis' flow settings
+    motion: MotionDetectorConfig = field(default_factory=MotionDetectorConfig)  # 'motion' detector
+    grabcut: GrabCutConfig = field(default_factory=GrabCutConfig)        # 'grabcut' segmenter
+
+    def validate(self) -> None:
+        FLOWS.check(self.flow)
+        TRACKERS.check(self.tracker)
+        DETECTORS.check(self.detector)
+        SEGMENTERS.check(self.segmenter)
+        if self.prompt not in PROMPT_MODES:
+            raise ConfigError(f"prompt '{self.prompt}' unknown; choose one of: "
+                              f"{', '.join(PROMPT_MODES)}")
+        if self.box_filter_unit not in UNIT_RULES:
+            raise ConfigError(f"box_filter_unit '{self.box_filter_unit}' unknown; choose one of: "
+                              f"{', '.join(UNIT_RULES)}")
+        if not self.tau0 > 0:
+            raise ConfigError("tau0 must be > 0")
+        if self.analysis_width < 16:
+            raise ConfigError("analysis_width must be at least 16 pixels")
+        if self.motion_gap < 1:
+            raise ConfigError("motion_gap must be at least 1 frame")
+        if not 0 <= self.motion_memory < 1:
+            raise ConfigError("motion_memory must be in [0, 1)")
+        if self.chain_change_px < 0 or self.chain_change_frac < 0:
+            raise ConfigError("chain_change_px and chain_change_frac must be >= 0")
+        if self.motion_travel_px < 0:
+            raise ConfigError("motion_travel_px must be >= 0")
+        if self.motion_grid_cols < 2 or self.motion_grid_rows < 2:
+            raise ConfigError("motion_grid_cols and motion_grid_rows must be at least 2")
+        if self.motion_model_threshold_px <= 0:
+            raise ConfigError("motion_model_threshold_px must be > 0")
+        self.dynamic_points.validate()
+        self.dis.validate()
+        self.motion.validate()
+        self.grabcut.validate()
+
+    @property
+    def lag(self) -> int:
+        """Frames a mask waits for after its frame was pushed (at most)."""
+        return max(self.dynamic_points.window - 1, self.motion_gap)
+
+
+@dataclass(frozen=True, eq=False)
+class MaskFrame:
+    """The masker's output for one frame.
+
+    index:          the frame index given to ``push``.
+    mask:           (H, W) bool, True on moving objects.
+    dynamic_points: the frame's :class:`~mona_vo.dynamic_points.DynamicPoints`.
+    boxes:          every detector box (:class:`~mona_vo.detection.Boxes`, pixels).
+    kept_boxes:     the boxes used as prompts (filtered in 'boxes' mode, all in 'raw-boxes',
+                    none in 'points').
+    box_filter:     the filter's details (counts, thresholds, unit box), None unless 'boxes'.
+    motion_map:     (h, w) float32 residual motion, pixels per frame, analysis resolution.
+    seconds:        stage name -> seconds spent on this frame (see the module docstring).
+    """
+
+    index: int
+    mask: np.ndarray
+    dynamic_points: DynamicPoints
+    boxes: Boxes
+    kept_boxes: Boxes
+    box_filter: BoxFilterResult | None
+    motion_map: np.ndarray | None
+    seconds: dict[str, float]
+
+
+def _build(registry, name: str, section, device: str):
+    """A back end: classical ones get their config section, neural ones the device."""
+    cls = registry.get(name)
+    return cls(config=section) if section is not None else cls(device=device)
+
+
+class MonaMasker:
+    """Streaming MONA masks (module docstring).
+
+    ``intrinsics``: the camera's, when known (else a pinhole guess from
+    ``config.dynamic_points.assumed_hfov_deg`` at the first frame). Back ends may be passed in as
+    instances (tests, or a caller sharing one flow network); otherwise they are built from
+    ``config`` (classical ones with their config section, neural ones with ``config.device``).
+    """
+
+    def __init__(self, config: MaskConfig | None = None, intrinsics: Intrinsics | None = None, *,
+                 flow: Flow | None = None, tracker: Tracker | None = None,
+                 detector: Detector | None = None, segmenter: Segmenter | None = None):
+        self.config = config or MaskConfig()
+        self.config.validate()
+        cfg = self.config
+        self.intrinsics = intrinsics
+        self.flow = flow or _build(FLOWS, cfg.flow, cfg.dis if cfg.flow == "dis" else None,
+                                   cfg.device)
+        self.tracker = tracker or TRACKERS.create(cfg.tracker)
+        self.detector = detector or _build(DETECTORS, cfg.detector,
+                                           cfg.motion if cfg.detector == "motion" else None,
+                                           cfg.device)
+        self.segmenter = segmenter or _build(SEGMENTERS, cfg.segmenter,
+                                             cfg.grabcut if cfg.segmenter == "grabcut" else None,
+                                             cfg.device)
+        self._points = DynamicPointsTracker(cfg.dynamic_points, self.tracker)
+        self._size: tuple[int, int] | None = None      # (W, H)
+        self._n = 0                                     # frames pushed
+        self._next_out = 0                              # position of the next frame to emit
+        self._index: dict[int, int] = {}                # position -> frame index given
+        self._images: dict[int, np.ndarray] = {}        # position -> image, until emitted
+        self._flows: dict[int, np.ndarray] = {}         # position p -> flow p -> p+1, analysis
+        self._m: dict[int, float] = {}                  # position -> m_t
+        self._dyn: dict[int, DynamicPoints] = {}        # position -> dynamic points
+        self._reserve: DynamicPoints | None = None      # last frame of the last closed window
+        self._seconds: dict[int, dict[str, float]] = {}
+        self._prev_map: np.ndarray | None = None        # motion map of the last frame emitted
+        self._prev_flow: np.ndarray | None = None       # and its flow to the next frame
+        self._last_image: np.ndarray | None = None      # the last frame pushed
+        self._prev_image: np.ndarray | None = None      # the one before it
+
+    # ------------------------------------------------------------------ buffers (for tests)
+    def buffered_frames(self) -> int:
+        """Images currently held (bounded by ``config.lag + 1``)."""
+        return len(self._images)
+
+    # ------------------------------------------------------------------ public API
+    def push(self, frame_index: int, image_rgb: np.ndarray) -> list[MaskFrame]:
+        """Feed the next frame ((H, W, 3) uint8 RGB); returns the masks that became ready, in
+        frame order (possibly none)."""
+        image = np.asarray(image_rgb)
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise InputError(f"frame {frame_index}: expected an (H, W, 3) uint8 RGB image, got "
+                             f"{image.shape} {image.dtype}")
+        H, W = image.shape[:2]
+        if self._size is None:
+            self._size = (W, H)
+            if self.intrinsics is None:
+                self.intrinsics = default_intrinsics(W, H, self.config.dynamic_points)
+        elif self._size != (W, H):
+            raise InputError(f"frame {frame_index} is {W} x {H}, the earlier frames are "
+                             f"{self._size[0]} x {self._size[1]}")
+        p = self._n
+        self._n += 1
+        self._index[p] = int(frame_index)
+        self._images[p] = image
+        self._seconds[p] = {s: 0.0 for s in STAGES}
+        if p > 0:
+            self._add_flow(p - 1, self._last_image, image)
+        self._prev_image, self._last_image = self._last_image, image
+        t0 = time.perf_counter()
+        window = self._points.push(p, image)
+        self._seconds[p]["tracking"] += time.perf_counter() - t0
+        if window is not None:
+            self._classify(window, final=False)
+        return self._emit_ready(final=False)
+
+    def flush(self) -> list[MaskFrame]:
+        """Masks of every frame not yet returned (call once, at the end of the input)."""
+        if self._n == 0:
+            return []
+        last = self._n - 1
+        if last > 0 and last not in self._flows and last in self._images:
+            # The last frame has no successor: its flow goes backwards, to the frame before.
+            self._add_flow(last, self._last_image, self._prev_image)
+        window = self._points.flush()
+        if window is not None:
+            self._classify(window, final=True)
+        elif last not in self._dyn and self._reserve is not None:
+            self._dyn[last] = self._reserve
+        out = self._emit_ready(final=True)
+        self._reserve = None
+        return out
+
+    # ------------------------------------------------------------------ stages
+    def _analysis_size(self) -> tuple[int, int]:
+        W, H = self._size
+        w = min(self.config.analysis_width, W)
+        return w, max(int(round(H * w / W)), 1)
+
+    def _add_flow(self, p: int, image0, image1) -> None:
+        """Flow of frame p (image0) to image1, kept at the analysis resolution, and its m_t."""
+        t0 = time.perf_counter()
+        full = self.flow.compute(image0, image1)
+        self._m[p] = mean_flow_magnitude(full)
+        w, h = self._analysis_size()
+        self._flows[p] = resize_flow(full, w, h)
+        self._seconds[p]["flow"] += time.perf_counter() - t0
+
+    def _classify(self, window, final: bool) -> None:
+        t0 = time.perf_counter()
+        pos = [int(q) for q in window.frame_indices]
+        # m_t of a window's last frame may not be known yet (it needs the next frame); the frame
+        # before stands in (it only matters for a window's last frame at the end of the input).
+        m = np.array([self._m.get(q, self._m.get(q - 1, 0.0)) for q in pos])
+        results = classify_window(window, m, self.config.dynamic_points, self.intrinsics)
+        keep = len(pos) if final else len(pos) - 1
+        share = (time.perf_counter() - t0) / max(keep, 1)
+        for q, r in zip(pos[:keep], results[:keep]):
+            self._dyn[q] = r
+            if q in self._seconds:
+                self._seconds[q]["dynamic_points"] += share
+        # A window's last frame is the next window's first; its result is kept in case the input
+        # ends there (then the next window never gets a second frame).
+        self._reserve = None if final else results[-1]
+
+    def _motion_map(self, p: int, last: int, model: str | None) -> np.ndarray | None:
+        """Residual motion of frame p, full-resolution pixels per frame, analysis resolution."""
+        cfg = self.config
+        W, _ = self._size
+        w, h = self._analysis_size()
+        scale = w / W
+        if p < last:
+            gap = min(cfg.motion_gap, last - p)
+            # Chain only until the image has moved enough to show parallax: longer chains
+            # drift and smear (background pixels later covered by a mover inherit its flow).
+            travelled = np.cumsum([self._m[q] for q in range(p, p + gap)])
+            gap = int(min(gap, np.searchsorted(travelled, cfg.motion_travel_px) + 1))
+            cum, valid = chain_flows([self._flows[q] for q in range(p, p + gap)],
+                                     max_change_px=cfg.chain_change_px * scale,
+                                     max_change_frac=cfg.chain_change_frac)
+            m_pair = float(np.mean([self._m[q] for q in range(p, p + gap)]))
+        elif p in self._flows:           # the last frame: flow to the previous frame
+            gap = 1
+            cum, valid = chain_flows([self._flows[p]])
+            m_pair = self._m[p]
+        else:
+            return None
+        small = cv2.resize(to_gray(self._images[p]), (w, h), interpolation=cv2.INTER_AREA)
+        score = texture_score(small, cfg.dynamic_points.anchor_score)
+        out = self._residual(p, score, cum, valid, gap, m_pair, model)
+        if gap > 1 and not valid.all():
+            # Pixels whose chain left the image: the single-step flow still sees them.
+            first, valid1 = chain_flows([self._flows[p]])
+            short = self._residual(p, score, first, valid1, 1, self._m[p], model)
+            out = np.where(valid, out, short)
+        return out
+
+    def _residual(self, p, score, cum, valid, gap, m_pair, model) -> np.ndarray:
+        """Residual map (full-resolution px per frame) of the flow ``cum`` over ``gap`` frames."""
+        cfg = self.config
+        dp = cfg.dynamic_points
+        h, w = cum.shape[:2]
+        scale = w / self._size[0]
+        anchors = grid_points(score, cfg.motion_grid_cols, cfg.motion_grid_rows, border=2,
+                              exclude=~valid)
+        if len(anchors) < 8:
+            return np.zeros((h, w), np.float32)
+        ij = np.round(anchors).astype(int)
+        pb = anchors + cum[ij[:, 1], ij[:, 0]]
+        theta_pair = adaptive_threshold(m_pair, dp.alpha, dp.theta_min_px)
+        motion = fit_camera_motion(anchors, pb, self.intrinsics.scaled(scale),
+                                   threshold_px=cfg.motion_model_threshold_px,
+                                   inlier_px=theta_pair * gap * scale,
+                                   homography_min_ratio=dp.homography_min_ratio,
+                                   method=dp.robust_method, model=model)
+        return residual_map(motion, cum, valid) / (gap * scale)
+
+    def _carry_forward(self, prev_map: np.ndarray) -> np.ndarray:
+        """The previous frame's motion map moved into this frame along the flow between them
+        (read at ``x - u(x)``, the flow standing in for its inverse); zeros without a flow."""
+        flow = self._prev_flow
+        if flow is None or flow.shape[:2] != prev_map.shape:
+            return np.zeros_like(prev_map)
+        h, w = prev_map.shape
+        gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        return cv2.remap(prev_map, gx - flow[..., 0], gy - flow[..., 1], cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+
+    def _emit_ready(self, final: bool) -> list[MaskFrame]:
+        out = []
+        last = self._n - 1
+        while self._next_out <= last:
+            p = self._next_out
+            if p not in self._dyn:
+                break
+            if not final and p + self.config.motion_gap > last:
+                break
+            out.append(self._emit(p, last))
+            self._next_out += 1
+        return out
+
+    def _emit(self, p: int, last: int) -> MaskFrame:
+        cfg = self.config
+        sec = self._seconds.pop(p)
+        image = self._images[p]
+        dyn = self._dyn.pop(p)
+        t0 = time.perf_counter()
+        # The dense fit takes the model (homography or epipolar) the frame's track window chose:
+        # its long-baseline, precisely tracked anchors decide it more reliably.
+        mmap = self._motion_map(p, last, dyn.camera_model if dyn.camera_model != NO_MODEL
+                                else None)
+        if mmap is not None and cfg.motion_memory > 0 and self._prev_map is not None:
+            mmap = np.maximum(mmap, cfg.motion_memory * self._carry_forward(self._prev_map))
+        t1 = time.perf_counter()
+        m_t = self._m.get(p, self._m.get(p - 1, 0.0))
+        theta = adaptive_threshold(m_t, cfg.dynamic_points.alpha, cfg.dynamic_points.theta_min_px)
+        theta = max(theta, dyn.theta_t)
+        motion_theta = theta
+        if mmap is not None and mmap.any():
+            spread = 1.4826 * float(np.median(mmap[mmap > 0]))
+            motion_theta = max(theta, cfg.dynamic_points.noise_factor * spread)
+        dyn_xy = dyn.dynamic_points
+        context = FrameContext(self._index[p], mmap, theta, m_t, dyn_xy, motion_theta)
+        boxes = Boxes.empty() if cfg.prompt == "points" else self.detector.detect(image, context)
+        t2 = time.perf_counter()
+        filt = None
+        if cfg.prompt == "boxes":
+            filt = adaptive_box_filter(boxes.xyxy, dyn_xy, cfg.tau0, cfg.box_filter_unit)
+            kept = boxes.select(filt.keep)
+        elif cfg.prompt == "raw-boxes":
+            kept = boxes
+        else:
+            kept = Boxes.empty()
+        t3 = time.perf_counter()
+        if cfg.prompt == "points":
+            mask = self.segmenter.segment(image, None, dyn_xy, context)
+        elif len(kept):
+            mask = self.segmenter.segment(image, kept, None, context)
+        else:
+            mask = np.zeros(image.shape[:2], bool)
+        t4 = time.perf_counter()
+        sec["motion_map"] += t1 - t0
+        sec["detection"] += t2 - t1
+        sec["box_filter"] += t3 - t2
+        sec["segmentation"] += t4 - t3
+        # Release what no later frame needs: later motion maps chain flows from p + 1 on, and
+        # later frames' m_t are their own (or, for the last frame, its backward flow's).
+        del self._images[p]
+        self._prev_map, self._prev_flow = mmap, self._flows.pop(p, None)
+        self._m.pop(p - 1, None)
+        index = self._index.pop(p)
+        return MaskFrame(index, mask, dyn, boxes, kept, filt, mmap, sec)
+
+
+def compute_masks(frames: Iterable, config: MaskConfig | None = None,
+                  intrinsics: Intrinsics | None = None) -> Iterator[MaskFrame]:
+    """Masks of a stream of frames (objects with ``index`` and ``image`` attributes, e.g.
+    :class:`data_tools.frames.Frame`, or ``(index, image)`` pairs), one per frame, in order."""
+    masker = MonaMasker(config, intrinsics)
+    for frame in frames:
+        if isinstance(frame, tuple):
+            index, image = frame
+        else:
+            index, image = frame.index, frame.image
+        yield from masker.push(index, image)
+    yield from masker.flush()

@@ -1,0 +1,290 @@
+"""Masks from prompts: one interface, back ends by name (``SEGMENTERS``).
+
+MONA prompts SAM with the filtered boxes (or, in the paper's ablation, with the dynamic points
+only). A :class:`Segmenter` takes box prompts, point prompts or both and returns one (H, W) bool
+mask, the union of the objects prompted.
+
+Default back end ``grabcut``: OpenCV GrabCut (colour GMMs + graph cut) at a reduced resolution,
+initialised from motion and prompts, per prompt region:
+
+* box prompt: the region of interest is the box grown by ``context_margin_frac``; its outermost
+  pixels are background (``GC_BGD``), the ring around the box probable background (a box may cut
+  its object; GrabCut may grow it there). Inside the box, pixels whose motion-map value exceeds
+  ``fg_factor * motion_theta`` and ``peak_frac`` times the box's 95th-percentile motion are
+  probable foreground, the others probable background. With no motion map, or when less than
+  ``min_moving_frac`` of the box moves, an inner rectangle of the box is probable foreground, as
+  in GrabCut's own rectangle initialisation (a box prompt says "an object is here", as for SAM).
+  When GrabCut keeps less than ``min_keep_frac`` of the moving pixels (colours shared with the
+  background), the moving pixels are added back (for points: the inner disks).
+* point prompts (no boxes): points are grouped (single linkage, ``point_link_frac`` of the image
+  diagonal) and each group is cut on its own. The mask stays within ``point_radius_frac`` (of the
+  diagonal) of the points; disks of half that radius are probable foreground, the rest of the
+  reach probable background; the motion map is not used (SAM sees only the image and the
+  prompts: the ablation compares prompt types). So a points-only prompt gives smaller, local and
+  often incomplete masks, as the paper's ablation reports for SAM.
+
+The mask is upsampled to the image size and dilated by ``dilate_px`` (masks feed a VO that must
+not use a point on a mover: a slightly too large mask costs less than a missed rim).
+
+Method ``motion`` is a cheaper alternative: the moving pixels inside the prompt regions, without
+colour.
+
+Neural back end ``sam`` (``mona_vo.neural.sam:SamSegmenter``) is imported only when chosen.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mona_vo.detection import Boxes, FrameContext, box_pixel_ranges, moving_region_mask
+from mona_vo.errors import ConfigError
+from mona_vo.registry import Registry
+
+SEGMENTERS = Registry("segmenter")
+
+
+class Segmenter(ABC):
+    """Prompted segmentation. Back ends are built by name from :data:`SEGMENTERS`; classical ones
+    take ``config=`` (their frozen config dataclass), neural ones ``device=``."""
+
+    @abstractmethod
+    def segment(self, image: np.ndarray, boxes: Boxes | None = None,
+                points: np.ndarray | None = None,
+                context: FrameContext | None = None) -> np.ndarray:
+        """(H, W) bool mask of the objects prompted in an (H, W, 3) uint8 RGB image.
+
+        boxes:  :class:`~mona_vo.detection.Boxes` prompts (full-resolution pixels), or None.
+        points: (N, 2) float32 positive point prompts x, y (pixels), or None. Used when no box
+                is given (the paper's points-only ablation); ignored next to boxes.
+        Returns an all-False mask when there is no prompt.
+        """
+
+
+@dataclass(frozen=True)
+class GrabCutConfig:
+    """Settings of the ``grabcut`` segmenter."""
+
+    method: str = "grabcut"          # grabcut (colour + motion) | motion (moving pixels only)
+    work_width: int = 256            # segmentation resolution: image width in pixels
+    iterations: int = 1              # GrabCut iterations per region (2 measured no better)
+    context_margin_frac: float = 0.25  # ring around a box used as background, fraction of size
+    fg_factor: float = 1.0           # probable foreground where motion > fg_factor * motion_theta
+    peak_frac: float = 0.25          # ... and > peak_frac x the box's 95th-percentile motion
+    point_radius_frac: float = 0.025  # points: reach of a point prompt, fraction of the diagonal
+    point_link_frac: float = 0.08    # points closer than this (fraction of diagonal) group
+    dilate_px: int = 3               # final mask dilation, full-resolution pixels
+    max_regions: int = 8             # at most this many prompt regions are segmented
+    min_moving_frac: float = 0.02    # a box with fewer moving pixels than this share is segmented
+                                     # by colour from a centred rectangle (a box means an object)
+    min_keep_frac: float = 0.3       # GrabCut keeping less than this share of a region's moving
+                                     # (points: prompted) pixels is overruled: they are added
+
+    def validate(self) -> None:
+        if self.method not in ("grabcut", "motion"):
+            raise ConfigError("grabcut.method must be grabcut or motion")
+        if self.work_width < 16:
+            raise ConfigError("grabcut.work_width must be at least 16 pixels")
+        if self.iterations < 1:
+            raise ConfigError("grabcut.iterations must be >= 1")
+        if not 0 <= self.peak_frac < 1:
+            raise ConfigError("grabcut.peak_frac must be in [0, 1)")
+        if self.context_margin_frac < 0 or self.fg_factor <= 0:
+            raise ConfigError("grabcut.context_margin_frac must be >= 0 and fg_factor > 0")
+        if self.point_radius_frac <= 0 or self.point_link_frac < 0:
+            raise ConfigError("grabcut.point_radius_frac must be > 0, point_link_frac >= 0")
+        if not 0 <= self.min_moving_frac <= 1:
+            raise ConfigError("grabcut.min_moving_frac must be in [0, 1]")
+        if not 0 <= self.min_keep_frac <= 1:
+            raise ConfigError("grabcut.min_keep_frac must be in [0, 1]")
+        if self.dilate_px < 0 or self.max_regions < 1:
+            raise ConfigError("grabcut.dilate_px must be >= 0 and max_regions >= 1")
+
+
+def group_points(points: np.ndarray, link_px: float) -> list[np.ndarray]:
+    """Single-linkage groups of (N, 2) points: two points closer than ``link_px`` share a group.
+    Returns index arrays, largest group first."""
+    p = np.asarray(points, np.float64).reshape(-1, 2)
+    n = len(p)
+    if n == 0:
+        return []
+    parent = np.arange(n)
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    d = np.linalg.norm(p[:, None] - p[None], axis=2)
+    for i, j in zip(*np.nonzero(np.triu(d <= link_px, 1))):
+        ri, rj = find(i), find(j)
+        if ri != rj:
+            parent[ri] = rj
+    roots = np.array([find(i) for i in range(n)])
+    groups = [np.nonzero(roots == r)[0] for r in np.unique(roots)]
+    return sorted(groups, key=len, reverse=True)
+
+
+@SEGMENTERS.register("grabcut")
+class GrabCutSegmenter(Segmenter):
+    """Box- or point-prompted GrabCut at reduced resolution, seeded by motion (module docstring)."""
+
+    def __init__(self, config: GrabCutConfig | None = None):
+        self.config = config or GrabCutConfig()
+        self.config.validate()
+
+    # -- helpers -----------------------------------------------------------------------------
+    def _work(self, image: np.ndarray):
+        H, W = image.shape[:2]
+        w = min(self.config.work_width, W)
+        h = max(int(round(H * w / W)), 1)
+        small = image if (w, h) == (W, H) else cv2.resize(image, (w, h),
+                                                          interpolation=cv2.INTER_AREA)
+        return small, w / W, h / H
+
+    @staticmethod
+    def _motion(context: FrameContext | None, w: int, h: int) -> np.ndarray | None:
+        if context is None or context.motion_map is None:
+            return None
+        mm = context.motion_map
+        if mm.shape != (h, w):
+            mm = cv2.resize(mm, (w, h), interpolation=cv2.INTER_LINEAR)
+        return mm
+
+    def _cut(self, small: np.ndarray, init: np.ndarray, roi: tuple[int, int, int, int],
+             fallback: np.ndarray) -> np.ndarray:
+        """GrabCut of the ``roi`` (c0, r0, c1, r1) of ``small`` with the initial labels ``init``
+        (same shape as the roi); ``fallback`` (bool, roi shape) when GrabCut cannot run."""
+        fg = (init == cv2.GC_FGD) | (init == cv2.GC_PR_FGD)
+        bg = (init == cv2.GC_BGD) | (init == cv2.GC_PR_BGD)
+        if self.config.method == "motion" or fg.sum() < 2 or bg.sum() < 2:
+            return fallback
+        c0, r0, c1, r1 = roi
+        labels = init.copy()
+        bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+        try:
+            cv2.grabCut(np.ascontiguousarray(small[r0:r1, c0:c1]), labels, None, bgd, fgd,
+                        self.config.iterations, cv2.GC_INIT_WITH_MASK)
+        except cv2.error:
+            return fallback
+        seg = (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
+        if seg.sum() < self.config.min_keep_frac * fallback.sum():
+            # GrabCut dropped most of what moves or was prompted (colours shared with the
+            # background): a missed mover costs the VO more than a rough mask.
+            seg |= fallback
+        return seg
+
+    # -- prompts -----------------------------------------------------------------------------
+    def _box_region(self, small, box_s, mm, theta):
+        """Mask (small size) of one box given in small-image pixel coordinates."""
+        h, w = small.shape[:2]
+        cfg = self.config
+        bw, bh = box_s[2] - box_s[0], box_s[3] - box_s[1]
+        m = cfg.context_margin_frac
+        grown = np.array([box_s[0] - m * bw, box_s[1] - m * bh, box_s[2] + m * bw,
+                          box_s[3] + m * bh])
+        c0, r0, c1, r1 = box_pixel_ranges(grown[None], w, h)[0]
+        b0, q0, b1, q1 = box_pixel_ranges(np.asarray(box_s)[None], w, h)[0]
+        out = np.zeros((h, w), bool)
+        if b1 <= b0 or q1 <= q0:
+            return out
+        # The ring around the box is probable background (the box may cut the object: GrabCut
+        # may grow it there); only the region's outermost pixels are certain background.
+        init = np.full((r1 - r0, c1 - c0), cv2.GC_PR_BGD, np.uint8)
+        init[[0, -1], :] = cv2.GC_BGD
+        init[:, [0, -1]] = cv2.GC_BGD
+        inner = (slice(q0 - r0, q1 - r0), slice(b0 - c0, b1 - c0))
+        moving = None
+        if mm is not None:
+            crop = mm[q0:q1, b0:b1]
+            # Relative to the box's strongest motion too: a mover's box may hold weaker motion
+            # (parallax, flow bleeding) that is not part of it.
+            peak = float(np.quantile(crop, 0.95)) if crop.size else 0.0
+            moving = moving_region_mask(crop, max(cfg.fg_factor * theta, cfg.peak_frac * peak),
+                                        0, 1)
+            if moving.mean() < cfg.min_moving_frac:
+                moving = None   # nothing moves in the box: segment its object by colour alone
+        if moving is not None:
+            init[inner] = np.where(moving, cv2.GC_PR_FGD, cv2.GC_PR_BGD)
+            fallback_inner = moving
+        else:
+            init[inner] = cv2.GC_PR_BGD
+            iy, ix = max((q1 - q0) // 8, 0), max((b1 - b0) // 8, 0)
+            init[q0 - r0 + iy:q1 - r0 - iy, b0 - c0 + ix:b1 - c0 - ix] = cv2.GC_PR_FGD
+            fallback_inner = np.ones((q1 - q0, b1 - b0), bool)
+        fallback = np.zeros(init.shape, bool)
+        fallback[inner] = fallback_inner
+        seg = self._cut(small, init, (c0, r0, c1, r1), fallback)
+        seg[init == cv2.GC_BGD] = False
+        out[r0:r1, c0:c1] = seg
+        return out
+
+    def _point_region(self, small, pts_s):
+        """Mask (small size) of one group of point prompts in small-image pixels."""
+        h, w = small.shape[:2]
+        cfg = self.config
+        rad = max(cfg.point_radius_frac * np.hypot(w, h), 1.0)
+        lo, hi = pts_s.min(axis=0) - 2 * rad, pts_s.max(axis=0) + 2 * rad
+        c0, r0, c1, r1 = box_pixel_ranges(np.r_[lo, hi][None], w, h)[0]
+        if c1 <= c0 or r1 <= r0:
+            return np.zeros((h, w), bool)
+        # The mask stays within ``rad`` of the prompts (certain background beyond: a point says
+        # "this pixel is on an object", not how far it reaches); the inner disks of half that
+        # radius are probable foreground.
+        init = np.full((r1 - r0, c1 - c0), cv2.GC_BGD, np.uint8)
+        zone = np.zeros(init.shape, np.uint8)
+        core = np.zeros(init.shape, np.uint8)
+        for x, y in pts_s:
+            centre = (int(round(x - c0)), int(round(y - r0)))
+            cv2.circle(zone, centre, int(round(rad)), 1, -1)
+            cv2.circle(core, centre, max(int(round(rad / 2)), 1), 1, -1)
+        init[zone > 0] = cv2.GC_PR_BGD
+        # Only the prompts seed the foreground (no motion map): as SAM sees only the image and
+        # the points, the ablation compares prompt types, not extra cues.
+        init[core > 0] = cv2.GC_PR_FGD
+        seg = self._cut(small, init, (c0, r0, c1, r1), core > 0)
+        seg[init == cv2.GC_BGD] = False
+        out = np.zeros((h, w), bool)
+        out[r0:r1, c0:c1] = seg
+        return out
+
+    def segment(self, image: np.ndarray, boxes: Boxes | None = None,
+                points: np.ndarray | None = None,
+                context: FrameContext | None = None) -> np.ndarray:
+        H, W = image.shape[:2]
+        cfg = self.config
+        has_boxes = boxes is not None and len(boxes) > 0
+        pts = np.zeros((0, 2)) if points is None else np.asarray(points, np.float64).reshape(-1, 2)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        if not has_boxes and len(pts) == 0:
+            return np.zeros((H, W), bool)
+        small, sx, sy = self._work(image)
+        h, w = small.shape[:2]
+        mm = self._motion(context, w, h)
+        theta = float(context.motion_theta) if context is not None else 0.0
+        acc = np.zeros((h, w), bool)
+        if has_boxes:
+            order = np.argsort(-np.asarray(boxes.score))[:cfg.max_regions]
+            for b in np.asarray(boxes.xyxy, np.float64)[order]:
+                bs = np.array([(b[0] + 0.5) * sx - 0.5, (b[1] + 0.5) * sy - 0.5,
+                               (b[2] + 0.5) * sx - 0.5, (b[3] + 0.5) * sy - 0.5])
+                acc |= self._box_region(small, bs, mm, theta)
+        else:
+            ps = np.stack([(pts[:, 0] + 0.5) * sx - 0.5, (pts[:, 1] + 0.5) * sy - 0.5], axis=1)
+            link = cfg.point_link_frac * np.hypot(w, h)
+            for idx in group_points(ps, link)[:cfg.max_regions]:
+                acc |= self._point_region(small, ps[idx])
+        if (w, h) != (W, H):
+            full = cv2.resize(acc.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR) > 0.5
+        else:
+            full = acc
+        if cfg.dilate_px > 0 and full.any():
+            full = cv2.dilate(full.astype(np.uint8), cv2.getStructuringElement(
+                cv2.MORPH_ELLIPSE, (2 * cfg.dilate_px + 1, 2 * cfg.dilate_px + 1))) > 0
+        return full
+
+
+SEGMENTERS.register("sam", "mona_vo.neural.sam:SamSegmenter")
