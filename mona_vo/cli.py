@@ -73,6 +73,19 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--frames", type=int, default=40, help="number of frames")
     d.set_defaults(func=_cmd_demo)
 
+    b = sub.add_parser("bench", help="speed and accuracy on generated 1024x436 scenes, beside COLMAP (pycolmap)",
+                       description="Generates sequences, runs mona-vo (no masks, MONA, GT masks) and COLMAP's "
+                                   "incremental SfM (without and with GT masks) on the same frames, and prints "
+                                   "ATE, frames posed, frames/s per stage, mask IoU and peak memory.")
+    b.add_argument("--presets", default="static,one-large,several", help="comma-separated generator presets")
+    b.add_argument("--seeds", default="0", help="seeds, e.g. 0-2 or 0,3")
+    b.add_argument("--frames", type=int, default=50, help="frames per sequence")
+    b.add_argument("--size", default="1024x436", help="image size WxH")
+    b.add_argument("--no-peer", action="store_true", help="skip COLMAP (it runs at about 1 frame/s)")
+    b.add_argument("--out", metavar="FILE", help="also write the rows as JSON here")
+    _add_config_options(b)
+    b.set_defaults(func=_cmd_bench)
+
     e = sub.add_parser("eval", help="evaluate trajectories, masks, or whole datasets")
     esub = e.add_subparsers(dest="eval_command", metavar="WHAT")
     et = esub.add_parser("traj", help="ATE/RPE of an estimate against GT (evo's numbers), printed as JSON")
@@ -166,6 +179,32 @@ def _cmd_demo(args) -> int:
     if out["out_dir"]:
         print(f"runs kept in {out['out_dir']}")
     return 0
+
+
+def _cmd_bench(args) -> int:
+    from eval.bench import bench, format_row, peak_memory_mb, summary_table
+    from eval.vo_bench import parse_seeds
+
+    w, h = (int(v) for v in args.size.lower().split("x"))
+    rows = bench(args.presets.split(","), parse_seeds(args.seeds), n_frames=args.frames, width=w,
+                 height=h, config=_pipeline_config(args), peer=not args.no_peer,
+                 on_row=lambda r: print(format_row(r), flush=True))
+    print()
+    print(summary_table(rows))
+    print(f"peak memory {peak_memory_mb():.0f} MB; machine: {_machine()}")
+    if args.out:
+        from data_tools.atomic import write_text_atomic
+
+        write_text_atomic(args.out, json.dumps(rows, indent=2, default=float) + "\n")
+    return 0
+
+
+def _machine() -> str:
+    import os
+    import platform
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return f"{cores} cores, {platform.machine()}, {platform.python_implementation()} {platform.python_version()}"
 
 
 def _cmd_eval_traj(args) -> int:
