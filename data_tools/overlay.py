@@ -25,7 +25,7 @@ def draw_overlay(image_rgb: np.ndarray, mask: np.ndarray | None, mona=None) -> n
     for box in np.asarray(getattr(getattr(mona, "kept_boxes", None), "xyxy", np.zeros((0, 4)))):
         x0, y0, x1, y1 = (int(round(v)) for v in box)
         cv2.rectangle(out, (x0, y0), (x1, y1), (255, 220, 0), 2)
-    dyn = getattr(mona, "dynamic", None)
+    dyn = getattr(mona, "dynamic_points", None)
     if dyn is not None and len(getattr(dyn, "points", ())):
         for (x, y), d in zip(np.asarray(dyn.points), np.asarray(dyn.is_dynamic)):
             cv2.circle(out, (int(round(x)), int(round(y))), 3, (255, 0, 0) if d else (0, 200, 0), -1)

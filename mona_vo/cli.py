@@ -22,6 +22,9 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
                    help="speed/accuracy preset: fast (fewer points, smaller windows), default, accurate (more points, larger windows)")
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                    help="device for neural back ends (classical back ends always run on the CPU)")
+    p.add_argument("--weights", metavar="DIR",
+                   help="folder of neural checkpoints (RAFT, YOLO, SAM, CoTracker) under their documented names; "
+                        "default $MONA_VO_WEIGHTS")
 
 
 def _add_mask_options(p: argparse.ArgumentParser, *, allow_folder: bool = True) -> None:
@@ -139,6 +142,10 @@ def _pipeline_config(args):
         overrides["masks.prompt"] = args.prompt
     if getattr(args, "device", "cpu") != "cpu":
         overrides["masks.device"] = args.device
+        overrides["vo.tracker_device"] = args.device
+    if getattr(args, "weights", None):
+        overrides["masks.weights"] = args.weights
+        overrides["vo.tracker_checkpoint"] = args.weights
     cfg = load_config(PipelineConfig, None, overrides)
     return load_config(cfg, getattr(args, "config", None), parse_set_options(getattr(args, "set", [])))
 

@@ -68,6 +68,12 @@ class MaskConfig:
     detector: str = "motion"                # box detector back end (mona_vo.detection.DETECTORS)
     segmenter: str = "grabcut"              # segmenter back end (mona_vo.segmentation.SEGMENTERS)
     device: str = "cpu"                     # torch device of neural back ends (cpu works)
+    weights: str = ""                       # folder of neural checkpoints under their documented
+                                            # names (mona_vo.neural.weights); "" = $MONA_VO_WEIGHTS
+    flow_checkpoint: str = ""               # checkpoint file of a neural flow; "" = from weights
+    detector_checkpoint: str = ""           # checkpoint file of a neural detector; "" = from weights
+    segmenter_checkpoint: str = ""          # checkpoint file of a neural segmenter; "" = from weights
+    tracker_checkpoint: str = ""            # checkpoint file of a neural tracker; "" = from weights
     prompt: str = "boxes"                   # boxes (filtered; the method) | points | raw-boxes
     tau0: float = 3.0                       # dynamic points the unit box must hold (count)
     box_filter_unit: str = "smallest-qualifying"  # unit box rule: smallest-qualifying | smallest
@@ -150,10 +156,18 @@ class MaskFrame:
     seconds: dict[str, float]
 
 
-def _build(registry, name: str, section, device: str):
-    """A back end: classical ones get their config section, neural ones the device."""
+def _build(registry, name: str, section, device: str, checkpoint: str = ""):
+    """A back end: classical ones get their config section, neural ones the device and their
+    checkpoint (a file or a weights folder; None lets them look in $MONA_VO_WEIGHTS)."""
     cls = registry.get(name)
-    return cls(config=section) if section is not None else cls(device=device)
+    return cls(config=section) if section is not None else cls(device=device, checkpoint=checkpoint or None)
+
+
+def build_tracker(name: str, device: str = "cpu", checkpoint: str = "") -> Tracker:
+    """The classical tracker takes no arguments; neural ones take device and checkpoint."""
+    if name == "lk":
+        return TRACKERS.create(name)
+    return TRACKERS.create(name, device=device, checkpoint=checkpoint or None)
 
 
 class MonaMasker:
@@ -173,14 +187,15 @@ class MonaMasker:
         cfg = self.config
         self.intrinsics = intrinsics
         self.flow = flow or _build(FLOWS, cfg.flow, cfg.dis if cfg.flow == "dis" else None,
-                                   cfg.device)
-        self.tracker = tracker or TRACKERS.create(cfg.tracker)
+                                   cfg.device, cfg.flow_checkpoint or cfg.weights)
+        self.tracker = tracker or build_tracker(cfg.tracker, cfg.device,
+                                                cfg.tracker_checkpoint or cfg.weights)
         self.detector = detector or _build(DETECTORS, cfg.detector,
                                            cfg.motion if cfg.detector == "motion" else None,
-                                           cfg.device)
+                                           cfg.device, cfg.detector_checkpoint or cfg.weights)
         self.segmenter = segmenter or _build(SEGMENTERS, cfg.segmenter,
                                              cfg.grabcut if cfg.segmenter == "grabcut" else None,
-                                             cfg.device)
+                                             cfg.device, cfg.segmenter_checkpoint or cfg.weights)
         self._points = DynamicPointsTracker(cfg.dynamic_points, self.tracker)
         self._size: tuple[int, int] | None = None      # (W, H)
         self._n = 0                                     # frames pushed

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -77,7 +77,7 @@ def _intrinsics_for(intrinsics, frame, width, height) -> Intrinsics | None:
         return intrinsics
     if callable(intrinsics):
         return intrinsics(frame)
-    return intrinsics[frame.index] if not isinstance(intrinsics, dict) else intrinsics[frame.index]
+    return intrinsics[frame.index]
 
 
 class _CallerMasks:
@@ -130,13 +130,13 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     size = None
 
     masker = None
+    use_mona = False
     caller = None
+    mask_seconds: dict[str, float] = {}
     if isinstance(masks, str):
         if masks != "mona":
             raise ConfigError(f"masks must be 'mona', None, an iterable or a callable, not '{masks}'")
-        from mona_vo.masks import MonaMasker
-
-        masker = MonaMasker(config.masks)
+        use_mona = True
     elif masks is not None:
         caller = _CallerMasks(masks)
 
@@ -161,6 +161,9 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             frame = pending.popleft()
             if mf.index != frame.index:
                 raise RuntimeError(f"mask for frame {mf.index} arrived for frame {frame.index}")
+            for stage, sec in (getattr(mf, "seconds", None) or {}).items():
+                key = f"masks.{stage}"
+                timings[key] = timings.get(key, 0.0) + sec
             feed(frame, mf.mask, mf)
 
     for frame in frames:
@@ -169,27 +172,26 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             size = (w, h)
         elif size != (w, h):
             raise InputError(f"frame {frame.name} is {w} x {h}, earlier frames are {size[0]} x {size[1]}")
-        if masker is not None:
+        if use_mona:
+            if masker is None:
+                from mona_vo.masks import MonaMasker
+
+                # MONA's camera model uses the intrinsics when known (a guess otherwise).
+                masker = MonaMasker(config.masks, _intrinsics_for(intrinsics, frame, w, h))
             pending.append(frame)
             drain(masker.push(frame.index, frame.image))
         else:
             feed(frame, caller.get(frame) if caller is not None else None)
     if masker is not None:
         drain(masker.flush())
-        for stage, sec in masker.timings().items():
+        for stage, sec in mask_seconds.items():
             timings[f"masks.{stage}"] = sec
     if vo is None or len(names) < 2:
-        raise InputError("a trajectory needs at least 2 frames; the input has "
-                         f"{len(names)}")
+        where = getattr(frames, "path", None)
+        raise InputError(f"{str(where) + ': ' if where is not None else ''}a trajectory needs at "
+                         f"least 2 frames; the input has {len(names)}")
     result = vo.finish()
     for stage, sec in result.timings.items():
         timings[f"vo.{stage}"] = sec
     timings["total"] = time.perf_counter() - t_start
     return RunResult(result, names, size[0], size[1], first_intr, timings, np.array(coverage))
-
-
-def iter_with_masks(frames: Iterable, masks) -> Iterator:
-    """(frame, mask) pairs from frames and a caller mask source (helper for tools and tests)."""
-    src = _CallerMasks(masks)
-    for f in frames:
-        yield f, src.get(f)

@@ -142,3 +142,6 @@ class LKTracker(Tracker):
         self._vel = (p1 - self._pts)[ok].astype(np.float32)
         self._ids, self._pts, self._err = self._ids[ok], p1[ok].astype(np.float32), fb[ok]
         return update
+
+
+TRACKERS.register("cotracker", "mona_vo.neural.cotracker:CoTrackerTracker")

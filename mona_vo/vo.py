@@ -40,6 +40,8 @@ LOW_CONFIDENCE = (ROTATION_ONLY, EXTRAPOLATED)
 @dataclass(frozen=True)
 class VOConfig:
     tracker: str = "lk"                     # point tracker back end (mona_vo.tracking.TRACKERS)
+    tracker_device: str = "cpu"             # torch device of a neural tracker
+    tracker_checkpoint: str = ""            # its checkpoint file or weights folder; "" = $MONA_VO_WEIGHTS
     grid_size: int = 16                     # k: new points on a k x k grid, one per cell
     point_score: str = "min_eigen"          # min_eigen (Shi-Tomasi) | gradient (LEAP-VO)
     mask_dilate_px: int = 5                 # no new points this close to a moving-object mask
@@ -122,7 +124,9 @@ class VisualOdometry:
         self.cfg = config
         self.width, self.height = int(width), int(height)
         self.default_intr = intrinsics or Intrinsics.default_for(width, height)
-        self.tracker = TRACKERS.create(config.tracker)
+        from mona_vo.masks import build_tracker
+
+        self.tracker = build_tracker(config.tracker, config.tracker_device, config.tracker_checkpoint)
         self.timings = defaultdict(float)
         self.drops = defaultdict(int)
         # Per frame, filled as frames arrive.
