@@ -14,9 +14,21 @@ from mona_vo.errors import InputError
 def parse_calibration(value: str, width: int | None = None, height: int | None = None) -> Intrinsics:
     """Intrinsics from ``"fx,fy,cx,cy"`` or from a calibration file path; InputError otherwise."""
     text = value.strip()
+    if not text:
+        raise InputError("calibration is empty: give fx,fy,cx,cy in pixels or a calibration file")
     path = Path(text)
-    if path.exists():
-        head = path.read_text(errors="replace")[:4096]
+    try:
+        exists, is_dir = path.exists(), path.is_dir()
+    except (OSError, ValueError):  # not a usable path (too long, a NUL byte): a value, then
+        exists = is_dir = False
+    if is_dir:
+        raise InputError(f"{path}: is a folder, expected a calibration file or fx,fy,cx,cy")
+    if exists:
+        try:
+            with open(path, "rb") as f:
+                head = f.read(4096).decode("utf-8", errors="replace")
+        except OSError as exc:
+            raise InputError(f"{path}: cannot read calibration ({exc.strerror or exc})") from None
         intr = read_kitti_calib(path) if "P0:" in head else read_calib_txt(path)
         where = str(path)
     else:

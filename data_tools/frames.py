@@ -8,10 +8,14 @@ Images are RGB here (OpenCV decodes BGR; the conversion happens in this module a
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
 import re
+import sys
+import tempfile
+import warnings
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +26,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from data_tools.atomic import write_bytes_atomic
-from mona_vo.errors import InputError
+from mona_vo.errors import ConfigError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -79,10 +83,11 @@ def _selected(n: int, stride: int, max_frames: int | None) -> range:
 
 
 def _check_stride(stride: int, max_frames: int | None) -> None:
+    # ConfigError, not ValueError: these come straight from --stride / --max-frames.
     if not isinstance(stride, int) or stride < 1:
-        raise ValueError(f"stride must be a positive integer, got {stride!r}")
+        raise ConfigError(f"stride must be a positive integer, got {stride!r}")
     if max_frames is not None and (not isinstance(max_frames, int) or max_frames < 1):
-        raise ValueError(f"max_frames must be a positive integer or None, got {max_frames!r}")
+        raise ConfigError(f"max_frames must be a positive integer or None, got {max_frames!r}")
 
 
 def _too_few(path: Path, n: int, selected: int) -> InputError:
@@ -90,6 +95,44 @@ def _too_few(path: Path, n: int, selected: int) -> InputError:
     if selected != n:
         what += f", {selected} after stride/max_frames"
     return InputError(f"{path}: only {what}; a camera trajectory needs at least 2 frames")
+
+
+@contextlib.contextmanager
+def native_stderr_to_log(what: str):
+    """Send what C libraries print on file descriptor 2 (libpng's "PNG input buffer is incomplete",
+    FFmpeg's "moov atom not found", OpenCV's own [ERROR] lines) to this module's log instead.
+
+    Errors are reported by the caller as one line naming the file; the libraries' own chatter,
+    printed once per bad frame, would bury it. With ``-v`` the captured text is logged as INFO.
+    """
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):  # no real stderr (e.g. an embedding host)
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    try:
+        with tempfile.TemporaryFile() as sink:
+            os.dup2(sink.fileno(), fd)
+            try:
+                yield
+            finally:
+                os.dup2(saved, fd)
+                sink.seek(0)
+                text = sink.read(4096).decode("utf-8", "replace").strip()
+                if text:
+                    log.info("%s: %s", what, " | ".join(text.splitlines()))
+    finally:
+        os.close(saved)
+
+
+def _cv2_reason(exc: Exception) -> str:
+    """The one-line gist of a cv2.error ('pixels <= CV_IO_MAX_IMAGE_PIXELS' rather than the path
+    of OpenCV's source file)."""
+    text = " ".join(str(exc).split())
+    m = re.search(r"error: \([^)]*\) (.*?)(?: in function .*)?$", text)
+    return m.group(1) if m else text
 
 
 def bgr_to_rgb(image: np.ndarray) -> np.ndarray:
@@ -107,8 +150,15 @@ def decode_image(path: Path) -> np.ndarray:
     except OSError as exc:
         raise InputError(f"{path}: cannot read image ({exc.strerror or exc})") from None
     # imdecode on bytes rather than imread: same decoder, but a read failure and a decode failure
-    # get different messages, and non-ASCII paths work on every platform.
-    bgr = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    # get different messages, and non-ASCII paths work on every platform. EXIF orientation is
+    # ignored so that the decoded size is the header's (image_size), which sizes the input.
+    bgr = None
+    if data.size:
+        with native_stderr_to_log(str(path)):
+            try:
+                bgr = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+            except cv2.error as exc:  # e.g. a header announcing more pixels than OpenCV allows
+                raise InputError(f"{path}: cannot decode image ({_cv2_reason(exc)})") from None
     if bgr is None:
         raise InputError(f"{path}: cannot decode image (truncated, corrupt or not an image)")
     return bgr_to_rgb(bgr)
@@ -130,12 +180,21 @@ def write_image(path: str | os.PathLike, image_rgb: np.ndarray) -> None:
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) from the image header only (cheap: no pixel decoding)."""
     try:
-        with Image.open(path) as im:
-            return im.size
+        # PIL warns (corrupt EXIF, DecompressionBombWarning) on stderr; the size is all we need.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(path) as im:
+                w, h = im.size
     except FileNotFoundError:
         raise InputError(f"{path}: image not found") from None
     except (UnidentifiedImageError, OSError) as exc:
         raise InputError(f"{path}: not a readable image ({exc})") from None
+    except Exception as exc:  # noqa: BLE001 -- PIL's header parsers raise anything on garbage
+        # (DecompressionBombError for an absurd size, ValueError, SyntaxError, struct.error, ...)
+        raise InputError(f"{path}: not a readable image ({type(exc).__name__}: {exc})") from None
+    if w < 1 or h < 1:
+        raise InputError(f"{path}: image of {w}x{h} pixels")
+    return w, h
 
 
 class FrameSource(ABC):
@@ -237,6 +296,12 @@ class VideoFrames(FrameSource):
         _check_stride(stride, max_frames)
         self.path = Path(path)
         self._stride = stride
+        with native_stderr_to_log(str(self.path)):
+            self._probe(stride, max_frames)
+        self.names = [f"{i:06d}" for i in self._indices]
+        self.timestamps = [float(i) for i in self._indices]
+
+    def _probe(self, stride: int, max_frames: int | None) -> None:
         cap = cv2.VideoCapture(str(self.path))
         try:
             if not cap.isOpened():
@@ -260,22 +325,22 @@ class VideoFrames(FrameSource):
         self._indices = list(_selected(count, stride, max_frames))
         if len(self._indices) < 2:
             raise _too_few(self.path, count, len(self._indices))
-        self.names = [f"{i:06d}" for i in self._indices]
-        self.timestamps = [float(i) for i in self._indices]
 
     def __len__(self) -> int:
         return len(self._indices)
 
     def __iter__(self) -> Iterator[Frame]:
-        cap = cv2.VideoCapture(str(self.path))
+        with native_stderr_to_log(str(self.path)):
+            cap = cv2.VideoCapture(str(self.path))
         yielded = 0
         try:
             for k, index in enumerate(self._indices):
-                if k > 0:
-                    for _ in range(self._stride - 1):  # grab() skips without converting
-                        if not cap.grab():
-                            break
-                ok, bgr = cap.read()
+                with native_stderr_to_log(str(self.path)):
+                    if k > 0:
+                        for _ in range(self._stride - 1):  # grab() skips without converting
+                            if not cap.grab():
+                                break
+                    ok, bgr = cap.read()
                 if not ok or bgr is None:
                     break
                 if bgr.shape[:2] != (self.height, self.width):
@@ -286,6 +351,11 @@ class VideoFrames(FrameSource):
         finally:
             cap.release()
         if yielded < len(self):
+            # Containers may announce a frame or two more than they hold; more than that is a
+            # truncated or damaged file, and a trajectory of its first part would be silently short.
+            if yielded < 2 or len(self) - yielded > max(2, len(self) // 100):
+                raise InputError(f"{self.path}: decoding stopped after {yielded} of the {len(self)} "
+                                 "frames the container announces (truncated or corrupt video)")
             log.warning("%s: decoded %d frames, the container announced %d (after stride)",
                         self.path, yielded, len(self))
 
@@ -307,10 +377,17 @@ def open_frames(path: str | os.PathLike, *, stride: int = 1, max_frames: int | N
     Raises InputError (one line naming the path) for anything that cannot give a trajectory.
     """
     path = Path(path)
-    if not path.exists():
+    try:
+        exists, is_dir = path.exists(), path.is_dir()
+    except (OSError, ValueError) as exc:  # e.g. a name longer than the file system allows
+        raise InputError(f"{path}: cannot access ({getattr(exc, 'strerror', None) or exc})") from None
+    if not exists:
         raise InputError(f"{path}: no such file or folder")
-    if path.is_dir():
-        files = list_images(path)
+    if is_dir:
+        try:
+            files = list_images(path)
+        except OSError as exc:
+            raise InputError(f"{path}: cannot list this folder ({exc.strerror or exc})") from None
         if not files:
             raise InputError(f"{path}: no images ({', '.join(IMAGE_EXTENSIONS)}) in this folder")
         if all(is_decimal_stem(f.stem) for f in files):

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from data_tools.atomic import write_bytes_atomic
-from data_tools.frames import image_size
+from data_tools.frames import _cv2_reason, image_size, native_stderr_to_log
 from mona_vo.errors import InputError
 
 _SHOWN = 5  # file names listed in a message before '...'
@@ -41,7 +41,13 @@ def read_mask_png(path: str | os.PathLike) -> np.ndarray:
         data = np.frombuffer(path.read_bytes(), np.uint8)
     except OSError as exc:
         raise InputError(f"{path}: cannot read mask ({exc.strerror or exc})") from None
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    image = None
+    if data.size:
+        with native_stderr_to_log(str(path)):
+            try:
+                image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+            except cv2.error as exc:  # e.g. a header announcing more pixels than OpenCV allows
+                raise InputError(f"{path}: cannot decode mask image ({_cv2_reason(exc)})") from None
     if image is None:
         raise InputError(f"{path}: cannot decode mask image (truncated, corrupt or not an image)")
     if image.ndim == 3:
@@ -85,7 +91,11 @@ def read_mask_folder(folder: str | os.PathLike, names: Sequence[str], size: tupl
     InputError naming the folder and the file(s).
     """
     folder = Path(folder)
-    if not folder.is_dir():
+    try:
+        found = folder.is_dir()
+    except (OSError, ValueError):  # e.g. a name longer than the file system allows
+        found = False
+    if not found:
         raise InputError(f"{folder}: mask folder not found")
     paths = [folder / f"{name}.png" for name in names]
     missing = [p.name for p in paths if not p.is_file()]

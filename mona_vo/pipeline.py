@@ -132,7 +132,6 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     masker = None
     use_mona = False
     caller = None
-    mask_seconds: dict[str, float] = {}
     if isinstance(masks, str):
         if masks != "mona":
             raise ConfigError(f"masks must be 'mona', None, an iterable or a callable, not '{masks}'")
@@ -184,8 +183,6 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             feed(frame, caller.get(frame) if caller is not None else None)
     if masker is not None:
         drain(masker.flush())
-        for stage, sec in mask_seconds.items():
-            timings[f"masks.{stage}"] = sec
     if vo is None or len(names) < 2:
         where = getattr(frames, "path", None)
         raise InputError(f"{str(where) + ': ' if where is not None else ''}a trajectory needs at "

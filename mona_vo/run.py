@@ -30,15 +30,16 @@ def _progress_bar(total: int | None, desc: str, enabled: bool):
     return bar, update
 
 
-def _mask_source(masks: str | None, source, width: int, height: int):
-    """'mona' | 'none' | None | folder path -> what estimate_trajectory takes."""
+def _mask_source(masks: str | None, source, width: int, height: int, *, subset: bool = False):
+    """'mona' | 'none' | None | folder path -> what estimate_trajectory takes. ``subset``: the run
+    uses some of the input's frames (stride, max_frames), so the folder may hold more masks."""
     if masks in (None, "none"):
         return None
     if masks == "mona":
         return "mona"
     from data_tools.masks_io import read_mask_folder
 
-    folder = read_mask_folder(masks, source.names, (width, height))
+    folder = read_mask_folder(masks, source.names, (width, height), allow_extra=subset)
     return iter(folder)
 
 
@@ -54,9 +55,17 @@ def run(input_path: str | Path, out_dir: str | Path, *, calib: str | None = None
     from eval.plots import plot_trajectory
 
     config = config or PipelineConfig()
+    # Everything the user gave is checked before the first frame is processed, so that a bad
+    # option fails in a second, not after the run (which would lose the run's work).
     source = open_frames(input_path, stride=stride, max_frames=max_frames)
     intr = parse_calibration(calib, source.width, source.height) if calib else None
-    mask_src = _mask_source(masks, source, source.width, source.height)
+    mask_src = _mask_source(masks, source, source.width, source.height,
+                            subset=stride != 1 or max_frames is not None)
+    gt_poses = None
+    if gt_path is not None:
+        from data_tools.tum import read_tum_trajectory
+
+        _, gt_poses = read_tum_trajectory(gt_path)
     overlay_writer = None
     with RunOutputs(out_dir, write_masks=masks not in (None, "none")) as outputs:
         if overlay:
@@ -81,11 +90,8 @@ def run(input_path: str | Path, out_dir: str | Path, *, calib: str | None = None
                 overlay_writer.close()
         vo = result.vo
         gt_xyz = None
-        if gt_path is not None:
-            from data_tools.tum import read_tum_trajectory
-
-            _, gt_poses = read_tum_trajectory(gt_path)
-            gt_xyz = gt_poses[:, :3, 3] if len(gt_poses) == len(vo.poses) else None
+        if gt_poses is not None and len(gt_poses) == len(vo.poses):
+            gt_xyz = gt_poses[:, :3, 3]
         plot = plot_trajectory(outputs.staging / "trajectory.png", vo.poses[:, :3, 3], gt_xyz,
                                title=f"{Path(input_path).name}: {result.n_frames} frames",
                                low_confidence=vo.low_confidence)
@@ -139,42 +145,39 @@ def _cpu_count() -> int:
 
 def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineConfig | None = None,
                stride: int = 1, max_frames: int | None = None, progress: bool = True) -> dict:
-    """MONA masks of a video or folder, written to ``out_dir/masks/<frame name>.png``."""
-    from data_tools.atomic import atomic_dir, write_text_atomic
+    """MONA masks of a video or folder, written to ``out_dir/masks/<frame name>.png`` with
+    ``out_dir/masks_report.json`` (staged like :func:`run`'s outputs, renamed into place at the end)."""
     from data_tools.frames import open_frames
-    from data_tools.masks_io import write_mask_png
+    from data_tools.run_outputs import RunOutputs
     from mona_vo.masks import compute_masks
-    import json
 
     config = config or PipelineConfig()
     source = open_frames(input_path, stride=stride, max_frames=max_frames)
     names = {}
-    bar, update = _progress_bar(len(source), "mona-vo masks", progress)
-    t0 = time.perf_counter()
     coverage = []
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    try:
-        with atomic_dir(out_dir / "masks") as tmp:
-            frames = []
 
-            def remember(src):
-                for f in src:
-                    names[f.index] = f.name
-                    yield f
+    def remember(src):
+        for f in src:
+            names[f.index] = f.name
+            yield f
+
+    with RunOutputs(out_dir, write_masks=True) as outputs:
+        bar, update = _progress_bar(len(source), "mona-vo masks", progress)
+        t0 = time.perf_counter()
+        try:
             for n, mf in enumerate(compute_masks(remember(source), config.masks), start=1):
-                write_mask_png(tmp / f"{names.pop(mf.index)}.png", mf.mask)
+                outputs.add_mask(names.pop(mf.index), mf.mask)
                 coverage.append(float(mf.mask.mean()))
                 update(n)
-    finally:
-        if bar is not None:
-            bar.close()
-    seconds = time.perf_counter() - t0
-    report = {"input": str(input_path), "frames": len(coverage), "seconds": round(seconds, 3),
-              "frames_per_second": round(len(coverage) / seconds, 2) if seconds > 0 else None,
-              "mean_mask_coverage": float(np.mean(coverage)) if coverage else 0.0,
-              "config": to_dict(config.masks)}
-    write_text_atomic(out_dir / "masks_report.json", json.dumps(report, indent=2) + "\n")
+        finally:
+            if bar is not None:
+                bar.close()
+        seconds = time.perf_counter() - t0
+        report = {"input": str(input_path), "frames": len(coverage), "seconds": round(seconds, 3),
+                  "frames_per_second": round(len(coverage) / seconds, 2) if seconds > 0 else None,
+                  "mean_mask_coverage": float(np.mean(coverage)) if coverage else 0.0,
+                  "config": to_dict(config.masks)}
+        outputs.commit_masks("masks_report.json", report)
     return report
 
 
