@@ -30,6 +30,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from data_tools.atomic import write_text_atomic
+from data_tools.run_outputs import sigint_deferred
 from data_tools.tum import write_tum_trajectory
 from eval.metrics import Trajectory, evaluate_trajectory
 from mona_vo.config import apply_overrides, to_dict
@@ -96,6 +97,8 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
             chash: str) -> dict:
     """Run one (sequence, variant), write its trajectory and result.json, return the row."""
     row = {"sequence": seq.name, "variant": variant, "frames": seq.n_frames, "config_hash": chash}
+    # An older result.json must never sit beside a newer trajectory: drop it before running.
+    (run_dir / "result.json").unlink(missing_ok=True)
     t0 = time.perf_counter()
     try:
         if seq.error:
@@ -111,7 +114,8 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
                                      config=variant_config(config, variant))
         vo = result.vo
         posed = np.isfinite(vo.poses).all(axis=(1, 2))
-        write_tum_trajectory(run_dir / "trajectory.txt", vo.timestamps[posed], vo.poses[posed])
+        with sigint_deferred():
+            write_tum_trajectory(run_dir / "trajectory.txt", vo.timestamps[posed], vo.poses[posed])
         row.update(frames=len(vo.timestamps), frames_with_pose=int(posed.sum()),
                    low_confidence=int(vo.low_confidence.sum()))
         m = evaluate_trajectory(seq.gt, Trajectory(vo.timestamps[posed], vo.poses[posed]),
@@ -182,10 +186,16 @@ def evaluate(sequences: list[EvalSequence], variants: list[str], out_dir: str | 
         if workers > 1 and len(todo) > 1:
             from concurrent.futures import ProcessPoolExecutor, as_completed
 
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+            pool = ProcessPoolExecutor(max_workers=workers)
+            try:
                 futures = [pool.submit(_job, job) for job in todo]
                 for fut in as_completed(futures):
                     finished(fut.result())
+            except BaseException:
+                # Ctrl-C: do not wait for every queued run; finished ones are already on disk.
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+            pool.shutdown()
         else:
             for job in todo:
                 finished(_job(job))

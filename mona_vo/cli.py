@@ -129,6 +129,30 @@ def build_parser() -> argparse.ArgumentParser:
     eu.add_argument("--workers", type=int, default=1, help="runs in parallel (processes)")
     _add_config_options(eu)
     eu.set_defaults(func=_cmd_eval_tum)
+
+    ef = esub.add_parser("flow", help="end-point error and speed of a flow back end on one pair with GT flow, as JSON",
+                         description="EPE over valid non-occluded pixels (epe_noc) and over all valid pixels "
+                                     "(epe_all), and ms per pair (median of 5 calls after a warm-up).")
+    ef.add_argument("--image0", required=True, help="first image")
+    ef.add_argument("--image1", required=True, help="second image")
+    ef.add_argument("--gt", required=True, metavar="FLO", help="ground-truth flow image0 -> image1 (.flo)")
+    ef.add_argument("--occlusions", metavar="PNG", help="occlusion mask (non-zero = occluded; Sintel occlusions/)")
+    ef.add_argument("--invalid", metavar="PNG", help="invalid-pixel mask (non-zero = left out; Sintel invalid/)")
+    ef.add_argument("--flow", default="dis", help="flow back end: dis (default) or raft (needs a checkpoint)")
+    ef.add_argument("--weights", metavar="DIR", help="checkpoint file or folder of a neural back end; default $MONA_VO_WEIGHTS")
+    ef.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="device of a neural back end")
+    ef.set_defaults(func=_cmd_eval_flow)
+
+    ev = esub.add_parser("two-view", help="two-view initialisation (LK tracks + five-point pose) against GT, as JSON",
+                         description="Tracks the VO's grid points from image0 to image1 with its tracker, estimates "
+                                     "the relative pose and prints its rotation and translation-direction errors "
+                                     "against rows i, j of a KITTI pose file (GT: inv(T_i) T_j).")
+    ev.add_argument("--image0", required=True, help="first image")
+    ev.add_argument("--image1", required=True, help="second image")
+    ev.add_argument("--calib", required=True, metavar="fx,fy,cx,cy|FILE", help="intrinsics (a KITTI calib.txt gives P0)")
+    ev.add_argument("--gt-poses", required=True, metavar="FILE", help="KITTI pose file (12 numbers per line)")
+    ev.add_argument("--gt-rows", required=True, metavar="i,j", help="0-based lines of image0 and image1 in the pose file")
+    ev.set_defaults(func=_cmd_eval_two_view)
     return p
 
 
@@ -292,7 +316,35 @@ def _cmd_eval_tum(args) -> int:
     return 0 if all(r.get("status") == "ok" for r in rows) else 1
 
 
+def _cmd_eval_flow(args) -> int:
+    from eval.flow_eval import evaluate_flow
+
+    r = evaluate_flow(args.image0, args.image1, args.gt, occlusions=args.occlusions,
+                      invalid=args.invalid, flow=args.flow, weights=args.weights, device=args.device)
+    print(json.dumps(r.to_dict()))
+    return 0
+
+
+def _cmd_eval_two_view(args) -> int:
+    from eval.two_view_eval import evaluate_two_view
+    from mona_vo.errors import ConfigError
+
+    try:
+        rows = tuple(int(v) for v in args.gt_rows.split(","))
+    except ValueError:
+        rows = ()
+    if len(rows) != 2:
+        raise ConfigError(f"--gt-rows must be two line numbers i,j, got '{args.gt_rows}'")
+    r = evaluate_two_view(args.image0, args.image1, args.calib, args.gt_poses, rows)
+    print(json.dumps(r.to_dict()))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+
+    # Batch schedulers stop jobs with SIGTERM: take the Ctrl-C path so temporaries are removed.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,

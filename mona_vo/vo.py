@@ -32,9 +32,9 @@ from mona_vo.tracking import TRACKERS, to_gray
 from mona_vo.two_view import relative_pose, rotation_only, rotation_parallax_deg, triangulate
 
 # Per-frame status, from most to least trustworthy.
-KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, EXTRAPOLATED = (
-    "keyframe", "tracked", "bootstrap", "rotation-only", "extrapolated")
-LOW_CONFIDENCE = (ROTATION_ONLY, EXTRAPOLATED)
+KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED = (
+    "keyframe", "tracked", "bootstrap", "rotation-only", "interpolated", "extrapolated")
+LOW_CONFIDENCE = (ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED)
 
 
 @dataclass(frozen=True)
@@ -59,6 +59,10 @@ class VOConfig:
                                             # keyframe and only its distance to the next one
     pnp_threshold_px: float = 2.0           # RANSAC inlier threshold for per-frame poses
     pnp_min_inliers: int = 12               # fewer PnP inliers means tracking is lost
+    pnp_guided_px: float = 6.0              # points this close to the constant-velocity prediction
+                                            # seed the pose before RANSAC is tried, px
+    pnp_guided_min_share: float = 0.3       # ... if they are at least this share of the landmarks
+    pnp_guided_support: float = 0.8         # and keep that pose unless RANSAC's has 1/0.8 x the inliers
     triangulation_min_angle_deg: float = 0.3  # rays closer than this give no landmark
     triangulation_max_error_px: float = 2.0   # nor do rays that miss each other by more
     dynamic_scale_px: float = 1.0           # Cauchy scale of a static point's residual, px
@@ -84,7 +88,8 @@ class VOResult:
     timestamps:  (N,) float64, as given to step().
     poses:       (N, 4, 4) float64 T_world_cam, one per input frame (world = first keyframe).
     is_keyframe: (N,) bool.
-    status:      list of N strings (keyframe, tracked, bootstrap, rotation-only, extrapolated).
+    status:      list of N strings (keyframe, tracked, bootstrap, rotation-only, interpolated,
+                 extrapolated); the last three are low-confidence.
     inliers:     (N,) int, points that supported each frame's pose.
     timings:     stage -> seconds (tracking, pose, mapping, ba).
     drops:       counters of what the masks and the dynamic test removed.
@@ -251,8 +256,7 @@ class VisualOdometry:
         new_ids, new_uv = self._new_points(gray, uv, mask)
         self._init_kf = _Keyframe(t, T_world_cam, intr, np.concatenate([ids, new_ids]),
                                   np.concatenate([uv, new_uv]), mask)
-        self._record(t, BOOTSTRAP if self.keyframes else ROTATION_ONLY, len(ids),
-                     T_world_cam=T_world_cam)
+        self._record(t, ROTATION_ONLY, len(ids), T_world_cam=T_world_cam)
 
     def _step_init(self, t, gray, ids, uv, intr, mask) -> None:
         t0 = time.perf_counter()
@@ -311,9 +315,12 @@ class VisualOdometry:
         for i, p in zip(tid[good], X[good]):
             self.landmarks[int(i)] = p
         k0 = _Keyframe(kf0.frame, kf0.T_world_cam, kf0.intr, kf0.ids, kf0.uv, kf0.mask)
+        # A new map after tracking was lost hangs on its first keyframe's provisional pose
+        # (extrapolated or rotation-only): that junction keeps its low-confidence status.
+        junction = self._status[k0.frame] if self.keyframes else KEYFRAME
         self.keyframes[k0.frame] = k0
         self.window.append(k0.frame)
-        self._record(k0.frame, KEYFRAME, int(good.sum()), ref=k0.frame)
+        self._record(k0.frame, junction, int(good.sum()), ref=k0.frame)
         self._init_kf = None
         self.state = "track"
         # Every frame that waited for the map gets a real pose now, by PnP on the new landmarks;
@@ -324,10 +331,11 @@ class VisualOdometry:
             T, n = self._pnp(pids, puv, pintr)
             if T is not None and tp > k0.frame:
                 posed.append((tp, pids, puv, pintr, T, n))
+            status = BOOTSTRAP
             if T is None and tp > k0.frame:
-                T, n = self._interpolate(k0.frame, t, tp, T1), 0
+                T, n, status = self._interpolate(k0.frame, t, tp, T1), 0, INTERPOLATED
             if T is not None:
-                self._record(tp, BOOTSTRAP, n, ref=k0.frame,
+                self._record(tp, status, n, ref=k0.frame,
                              T_kf_frame=invert_pose(k0.T_world_cam) @ T)
         self._pending = []
         # Like LEAP-VO's 8-frame start, a few of those frames join the first window: two views
@@ -360,23 +368,56 @@ class VisualOdometry:
             return T2 @ (invert_pose(T1) @ T2)
         return self._pose_of(t - 1) if t >= 1 else np.eye(4)
 
-    def _pnp(self, ids, uv, intr) -> tuple[np.ndarray | None, int]:
+    def _pnp(self, ids, uv, intr, T_guess: np.ndarray | None = None) -> tuple[np.ndarray | None, int]:
+        """Pose of a frame from its tracks with landmarks. With a prediction, first a robust
+        refinement from it on the points it explains; RANSAC (AP3P) when that fails."""
         have = np.array([int(i) in self.landmarks for i in ids], bool)
         if have.sum() < max(6, self.cfg.pnp_min_inliers):
             return None, int(have.sum())
         P = np.array([self.landmarks[int(i)] for i in ids[have]])
         q = uv[have]
+        guided = (None, 0)
+        if T_guess is not None:
+            # A mover that keeps pace with the camera can hold the largest consensus set, and
+            # RANSAC would follow it; under the constant-velocity prediction the static world is
+            # the part that still fits. That pose wins unless RANSAC finds clearly more support.
+            guided = self._refine_pose(P, q, intr, T_guess, self.cfg.pnp_guided_px)
         # Minimal AP3P samples need no initial guess (frames far from the prediction, e.g. those
-        # waiting for the map, still work); the LM refinement below restores full accuracy.
+        # waiting for the map, still work); the LM refinement restores full accuracy.
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
             P, q, intr.K, None, iterationsCount=100, reprojectionError=self.cfg.pnp_threshold_px,
             confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
-        if not ok or inl is None or len(inl) < self.cfg.pnp_min_inliers:
-            return None, 0 if inl is None else len(inl)
-        inl = inl.ravel()
-        rvec, tvec = cv2.solvePnPRefineLM(P[inl], q[inl], intr.K, None, rvec, tvec)
-        R, _ = cv2.Rodrigues(rvec)
-        return invert_pose(make_pose(R, tvec.ravel())), len(inl)
+        ransac = (None, 0 if inl is None else len(inl))
+        if ok and inl is not None and len(inl) >= self.cfg.pnp_min_inliers:
+            T_r, _ = cv2.Rodrigues(rvec)
+            ransac = self._refine_pose(P, q, intr, invert_pose(make_pose(T_r, tvec.ravel())),
+                                       self.cfg.pnp_threshold_px, min_share=0.0)
+        if guided[0] is not None and guided[1] >= self.cfg.pnp_guided_support * ransac[1]:
+            return guided
+        return ransac if ransac[0] is not None else (None, ransac[1])
+
+    def _refine_pose(self, P, q, intr, T_start, gate_px,
+                     min_share: float | None = None) -> tuple[np.ndarray | None, int]:
+        """Levenberg-Marquardt from T_start on the points within gate_px of their prediction,
+        then again on the points within pnp_threshold_px of the refined pose."""
+        T = T_start
+        share = self.cfg.pnp_guided_min_share if min_share is None else min_share
+        for gate in (gate_px, self.cfg.pnp_threshold_px):
+            Tcw = invert_pose(T)
+            Xc = P @ Tcw[:3, :3].T + Tcw[:3, 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = intr.fx * Xc[:, 0] / Xc[:, 2] + intr.cx
+                v = intr.fy * Xc[:, 1] / Xc[:, 2] + intr.cy
+            sel = (Xc[:, 2] > 0) & (np.hypot(u - q[:, 0], v - q[:, 1]) < gate)
+            if sel.sum() < max(self.cfg.pnp_min_inliers, share * len(P)):
+                return None, int(sel.sum())
+            if not np.isfinite(P[sel]).all():
+                return None, 0
+            rvec, _ = cv2.Rodrigues(Tcw[:3, :3])
+            rvec, tvec = cv2.solvePnPRefineLM(P[sel], q[sel], intr.K, None, rvec, Tcw[:3, 3].copy())
+            R, _ = cv2.Rodrigues(rvec)
+            T = invert_pose(make_pose(R, tvec.ravel()))
+        return T, int(sel.sum())
 
     def _residuals(self, ids, uv, intr, T_world_cam) -> np.ndarray:
         """(N,) reprojection residual of tracks with landmarks (NaN for the others)."""
@@ -417,7 +458,7 @@ class VisualOdometry:
     def _step_track(self, t, gray, ids, uv, intr, mask) -> None:
         t0 = time.perf_counter()
         T_guess = self._predict(t)
-        T, n_inl = self._pnp(ids, uv, intr)
+        T, n_inl = self._pnp(ids, uv, intr, T_guess)
         if T is None:
             # Lost: keep a pose (extrapolated), remember the speed, start a new map here.
             self.drops["tracking_lost"] += 1
