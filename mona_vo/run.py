@@ -181,7 +181,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
     return report
 
 
-def demo(out_dir: str | Path | None = None, *, preset: str = "one-large", seed: int = 0,
+def demo(out_dir: str | Path | None = None, *, preset: str = "one-large", seed: int = 5,
          n_frames: int = 40, width: int = 1024, height: int = 436, config: PipelineConfig | None = None,
          progress: bool = True) -> dict:
     """Generate a synthetic dynamic sequence, estimate its trajectory with no masks, with MONA
