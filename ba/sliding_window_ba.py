@@ -19,7 +19,10 @@ whole (its other observations are not added either). :class:`BAResult` counts bo
 """
 from __future__ import annotations
 
+import contextlib
 import functools
+import os
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -140,6 +143,22 @@ def distance_error(centre: np.ndarray, distance: float, this: gtsam.CustomFactor
     return np.array([n - distance])
 
 
+@contextlib.contextmanager
+def _quiet_native_stdout():
+    """GTSAM's GeneralSFMFactor2 prints a line to C++ stdout for every landmark behind a camera
+    during Levenberg-Marquardt (its residual is then zeroed); those lines must not reach users."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
 def _noise(cfg: BAConfig):
     pixel = gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)  # pixel_sigma px in u and v
     if cfg.robust_kernel == "huber":
@@ -230,7 +249,8 @@ def _solve(problem: BAProblem, cfg: BAConfig, usable: np.ndarray, keep_lm: np.nd
     params.setMaxIterations(cfg.max_iterations)
     params.setRelativeErrorTol(1e-4)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    result = optimizer.optimize()
+    with _quiet_native_stdout() if refine_focal else contextlib.nullcontext():
+        result = optimizer.optimize()
     for k in kf_ids:
         poses[k] = result.atPose3(X(k)).matrix()
     for j in keep_lm:

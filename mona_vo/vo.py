@@ -67,7 +67,8 @@ class VOConfig:
     triangulation_max_error_px: float = 2.0   # nor do rays that miss each other by more
     dynamic_scale_px: float = 1.0           # Cauchy scale of a static point's residual, px
     dynamic_prob_max: float = 0.9           # tracks above this dynamic probability twice are dropped
-    refine_focal: bool = False              # refine one shared focal length during bootstrap
+    refine_focal: bool = False              # refine one shared focal length while the first window
+                                            # fills (needs rotation; see README's measurements)
     ba: BAConfig = field(default_factory=BAConfig)
 
     def validate(self) -> None:
