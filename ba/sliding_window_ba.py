@@ -30,7 +30,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import K, L, X
 
-from mona_vo.conventions import Intrinsics, invert_pose
+from mona_vo.conventions import Intrinsics, pixels_in_mask, reproject
 
 
 @dataclass(frozen=True)
@@ -110,12 +110,8 @@ def observations_in_masks(obs_kf: np.ndarray, obs_uv: np.ndarray,
         if mask is None:
             continue
         sel = np.flatnonzero(obs_kf == kf)
-        if not len(sel):
-            continue
-        h, w = mask.shape
-        x = np.clip(np.rint(obs_uv[sel, 0]).astype(int), 0, w - 1)
-        y = np.clip(np.rint(obs_uv[sel, 1]).astype(int), 0, h - 1)
-        inside[sel] = mask[y, x]
+        if len(sel):
+            inside[sel] = pixels_in_mask(mask, obs_uv[sel])
     return inside
 
 
@@ -184,15 +180,9 @@ def reprojection_residuals(poses: dict[int, np.ndarray], landmarks: dict[int, np
         if not len(sel):
             continue
         P = np.array([landmarks[int(j)] for j in obs_lm[sel]])
-        Tcw = invert_pose(poses[kf])
-        Xc = P @ Tcw[:3, :3].T + Tcw[:3, 3]
-        intr = intrinsics[kf]
-        fx, fy = (focal, focal) if focal is not None else (intr.fx, intr.fy)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = fx * Xc[:, 0] / Xc[:, 2] + intr.cx
-            v = fy * Xc[:, 1] / Xc[:, 2] + intr.cy
-        e = np.hypot(u - obs_uv[sel, 0], v - obs_uv[sel, 1])
-        e[~(Xc[:, 2] > 1e-9)] = np.inf
+        uv, z = reproject(poses[kf], P, intrinsics[kf], fx=focal, fy=focal)
+        e = np.hypot(uv[:, 0] - obs_uv[sel, 0], uv[:, 1] - obs_uv[sel, 1])
+        e[~(z > 1e-9)] = np.inf
         res[sel] = e
     return res
 

@@ -161,6 +161,28 @@ def unproject(pixels: np.ndarray, depth: np.ndarray, intr: Intrinsics) -> np.nda
     return np.stack([x, y, d], axis=1)
 
 
+def reproject(T_world_cam: np.ndarray, points_world: np.ndarray, intr: Intrinsics,
+              fx: float | None = None, fy: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) and camera-frame depths (N,) of world points (N, 3) seen from T_world_cam.
+    Points at or behind the camera get non-finite or meaningless pixels; check ``depth > 0``.
+    ``fx``/``fy`` override the intrinsics' focal lengths (shared-focal refinement)."""
+    T_cam_world = invert_pose(T_world_cam)
+    Xc = np.asarray(points_world, np.float64) @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (intr.fx if fx is None else fx) * Xc[:, 0] / Xc[:, 2] + intr.cx
+        v = (intr.fy if fy is None else fy) * Xc[:, 1] / Xc[:, 2] + intr.cy
+    return np.stack([u, v], axis=1), Xc[:, 2]
+
+
+def pixels_in_mask(mask: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """(N,) bool: the nearest pixel centre of each (x, y) is True in the (H, W) bool mask;
+    pixels outside the image take the nearest border pixel."""
+    h, w = mask.shape
+    x = np.clip(np.rint(pixels[:, 0]).astype(int), 0, w - 1)
+    y = np.clip(np.rint(pixels[:, 1]).astype(int), 0, h - 1)
+    return mask[y, x]
+
+
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 transform to (N, 3) points."""
     return np.asarray(points) @ T[:3, :3].T + T[:3, 3]

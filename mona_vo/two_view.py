@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from mona_vo.conventions import Intrinsics, invert_pose, make_pose
+from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
 
 
 def normalize(pixels: np.ndarray, intr: Intrinsics) -> np.ndarray:
@@ -96,13 +96,9 @@ def triangulate(T_world_a: np.ndarray, T_world_b: np.ndarray, pts_a: np.ndarray,
     ok = np.isfinite(X).all(axis=1)
     errs = []
     for T, intr, pts in ((T_world_a, intr_a, pts_a), (T_world_b, intr_b, pts_b)):
-        Tcw = invert_pose(T)
-        Xc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = intr.fx * Xc[:, 0] / Xc[:, 2] + intr.cx
-            v = intr.fy * Xc[:, 1] / Xc[:, 2] + intr.cy
-        e = np.hypot(u - pts[:, 0], v - pts[:, 1])
-        e[~(Xc[:, 2] > 0)] = np.inf
+        proj, z = reproject(T, X, intr)
+        e = np.hypot(proj[:, 0] - pts[:, 0], proj[:, 1] - pts[:, 1])
+        e[~(z > 0)] = np.inf
         errs.append(e)
     err[ok] = np.maximum(errs[0], errs[1])[ok]
     ca, cb = T_world_a[:3, 3], T_world_b[:3, 3]

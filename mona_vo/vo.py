@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from ba.sliding_window_ba import BAConfig, BAProblem, sliding_window_ba
-from mona_vo.conventions import Intrinsics, invert_pose, make_pose
+from mona_vo.conventions import Intrinsics, invert_pose, make_pose, pixels_in_mask, reproject
 from mona_vo.errors import ConfigError
 from mona_vo.point_selection import grid_points, texture_score
 from mona_vo.tracking import TRACKERS, to_gray
@@ -177,7 +177,7 @@ class VisualOdometry:
         for i in upd.ids[~vis]:
             self.strikes.pop(int(i), None)
         if mask is not None:
-            inside = _in_mask(mask, uv)
+            inside = pixels_in_mask(mask, uv)
             newly = [int(i) for i in ids[inside] if int(i) not in self.bad]
             self.drops["tracks_entering_masks"] += len(newly)
             self.bad.update(newly)
@@ -404,16 +404,13 @@ class VisualOdometry:
         T = T_start
         share = self.cfg.pnp_guided_min_share if min_share is None else min_share
         for gate in (gate_px, self.cfg.pnp_threshold_px):
-            Tcw = invert_pose(T)
-            Xc = P @ Tcw[:3, :3].T + Tcw[:3, 3]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = intr.fx * Xc[:, 0] / Xc[:, 2] + intr.cx
-                v = intr.fy * Xc[:, 1] / Xc[:, 2] + intr.cy
-            sel = (Xc[:, 2] > 0) & (np.hypot(u - q[:, 0], v - q[:, 1]) < gate)
+            proj, z = reproject(T, P, intr)
+            sel = (z > 0) & (np.hypot(proj[:, 0] - q[:, 0], proj[:, 1] - q[:, 1]) < gate)
             if sel.sum() < max(self.cfg.pnp_min_inliers, share * len(P)):
                 return None, int(sel.sum())
             if not np.isfinite(P[sel]).all():
                 return None, 0
+            Tcw = invert_pose(T)
             rvec, _ = cv2.Rodrigues(Tcw[:3, :3])
             rvec, tvec = cv2.solvePnPRefineLM(P[sel], q[sel], intr.K, None, rvec, Tcw[:3, 3].copy())
             R, _ = cv2.Rodrigues(rvec)
@@ -427,13 +424,9 @@ class VisualOdometry:
         if not have.any():
             return r
         P = np.array([self.landmarks[int(i)] for i in ids[have]])
-        Tcw = invert_pose(T_world_cam)
-        Xc = P @ Tcw[:3, :3].T + Tcw[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = intr.fx * Xc[:, 0] / Xc[:, 2] + intr.cx
-            v = intr.fy * Xc[:, 1] / Xc[:, 2] + intr.cy
-        e = np.hypot(u - uv[have, 0], v - uv[have, 1])
-        e[~(Xc[:, 2] > 0)] = np.inf
+        proj, z = reproject(T_world_cam, P, intr)
+        e = np.hypot(proj[:, 0] - uv[have, 0], proj[:, 1] - uv[have, 1])
+        e[~(z > 0)] = np.inf
         r[have] = e
         return r
 
@@ -595,11 +588,3 @@ class VisualOdometry:
         for j in [j for j in self.landmarks if j not in keep]:
             del self.landmarks[j]
         self.bad = {j for j in self.bad if j in live or j in keep}
-
-
-def _in_mask(mask: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(N,) bool: pixel (nearest centre) lies on a True mask pixel."""
-    h, w = mask.shape
-    x = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
-    y = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
-    return mask[y, x]

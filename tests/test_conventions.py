@@ -79,3 +79,29 @@ def test_scaled_intrinsics_keep_pixel_centres(scale):
     # Any point lands where resizing moves its pixel: x' = (x + 0.5) * s - 0.5.
     pts = np.array([[0.3, -0.2, 2.0], [-1.0, 0.5, 5.0]])
     np.testing.assert_allclose(project(pts, small), (project(pts, intr) + 0.5) * scale - 0.5)
+
+
+def test_reproject_inverts_unproject_and_reports_depth():
+    from mona_vo.conventions import Intrinsics, make_pose, reproject, transform_points, unproject
+    from scipy.spatial.transform import Rotation
+
+    intr = Intrinsics(500.0, 480.0, 319.5, 239.5)
+    T = make_pose(Rotation.from_euler("xyz", [0.1, -0.3, 0.2]).as_matrix(), [1.0, -2.0, 0.5])
+    pix = np.array([[0.0, 0.0], [319.5, 239.5], [639.0, 479.0]])
+    depth = np.array([2.0, 5.0, 11.0])
+    world = transform_points(T, unproject(pix, depth, intr))
+    got, z = reproject(T, world, intr)
+    assert np.allclose(got, pix) and np.allclose(z, depth)
+    _, z_behind = reproject(T, transform_points(T, np.array([[0.0, 0.0, -1.0]])), intr)
+    assert z_behind[0] < 0
+
+
+def test_pixels_in_mask_uses_the_nearest_pixel_centre():
+    from mona_vo.conventions import pixels_in_mask
+
+    mask = np.zeros((4, 5), bool)
+    mask[1, 2] = True
+    # Pixel (x=2, y=1) covers [1.5, 2.5) x [0.5, 1.5) around its integer centre.
+    inside = pixels_in_mask(mask, np.array([[2.0, 1.0], [2.4, 1.4], [1.6, 0.6], [2.6, 1.0], [2.0, 1.6],
+                                            [-3.0, 1.0], [9.0, 9.0]]))
+    assert inside.tolist() == [True, True, True, False, False, False, False]
