@@ -45,7 +45,7 @@ class VOConfig:
     grid_size: int = 16                     # k: new points on a k x k grid, one per cell
     point_score: str = "min_eigen"          # min_eigen (Shi-Tomasi) | gradient (LEAP-VO)
     mask_dilate_px: int = 5                 # no new points this close to a moving-object mask
-    init_min_parallax_deg: float = 1.0      # median ray angle needed to initialise the map
+    init_min_parallax_deg: float = 0.5      # median ray angle needed to initialise the map
     init_min_inliers: int = 40              # essential-matrix inliers needed to initialise
     init_max_frames: int = 20               # frames to wait for parallax before rotation-only poses
     init_keyframes: int = 4                 # keyframes of the first window (two-view pair included)
@@ -53,6 +53,7 @@ class VOConfig:
     keyframe_min_tracked: float = 0.6       # keyframe when this share of its landmarks remains
     keyframe_max_gap: int = 6               # at most this many frames between keyframes
     keyframe_min_landmarks: int = 60        # keyframe when fewer landmarks than this are tracked
+    keyframe_falling: float = 0.9           # ... and fewer than this share of the last keyframe's
     window_keyframes: int = 8               # keyframes in the bundle-adjustment window
     fixed_keyframes: int = 2                # oldest window keyframes held fixed (gauge, scale)
     gauge: str = "fixed"                    # fixed: hold fixed_keyframes; distance: hold the oldest
@@ -489,9 +490,13 @@ class VisualOdometry:
         parallax_px = np.radians(np.median(ang)) * intr.fx
         lm_last = sum(int(i) in self.landmarks for i in last.ids)
         lm_now = sum(int(i) in self.landmarks for i in common)
+        # The floor applies while landmarks are being lost (a pan), not to a scene that simply
+        # holds few (a poorly textured room): there it would make every frame a keyframe, and
+        # windows without baseline drift in scale.
+        falling = lm_now < self.cfg.keyframe_falling * max(lm_last, 1)
         return (parallax_px >= self.cfg.keyframe_parallax_px
                 or lm_now < self.cfg.keyframe_min_tracked * max(lm_last, 1)
-                or lm_now < self.cfg.keyframe_min_landmarks)
+                or (falling and lm_now < self.cfg.keyframe_min_landmarks))
 
     # ----------------------------------------------------------------- mapping
     def _make_keyframe(self, t, gray, ids, uv, intr, mask, T_world_cam, n_inl) -> None:
