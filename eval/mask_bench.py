@@ -164,7 +164,15 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":
+def main(argv: Sequence[str] | None = None) -> None:
+    """``python -m eval.mask_bench [--seeds 0,1,2] [--frames 30]``: speed, DAVIS, synthetic."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m eval.mask_bench", description=__doc__)
+    parser.add_argument("--seeds", default="0,1,2", help="synthetic scene seeds, comma-separated")
+    parser.add_argument("--frames", type=int, default=30, help="frames per synthetic scene")
+    args = parser.parse_args(argv)
+    seeds = tuple(int(x) for x in args.seeds.split(",") if x.strip())
     print("== speed (ms per frame per stage) ==")
     print(format_table(speed_rows()))
     if (SHARED_DATA / "davis2016").is_dir():
@@ -175,8 +183,12 @@ if __name__ == "__main__":
     except ImportError:
         print("\n(data_tools.synthetic not available: synthetic benchmark skipped)")
     else:
-        rows = synthetic_rows()
+        rows = synthetic_rows(seeds=seeds, n_frames=args.frames)
         print("\n== synthetic scenes, per seed ==")
         print(format_table(rows))
         print("\n== synthetic scenes, per preset (J = mean IoU; static: fp_area) ==")
         print(format_table(summarise(rows)))
+
+
+if __name__ == "__main__":
+    main()

@@ -131,6 +131,25 @@ def chain_flows(flows, *, max_change_px: float = np.inf,
     return out, valid
 
 
+def forward_warp_mask(mask: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the True pixels of an (h, w) bool ``mask`` moved along their own vectors of
+    the (h, w, 2) float32 ``flow`` (same size, pixels; rounded to the nearest pixel), the pixels
+    leaving the image dropped, and the one-pixel holes that splatting leaves where the flow
+    stretches closed (3 x 3 closing)."""
+    mask = np.asarray(mask, bool)
+    h, w = mask.shape
+    out = np.zeros((h, w), np.uint8)
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return out > 0
+    u = np.asarray(flow, np.float32)[ys, xs]
+    x = np.rint(xs + u[:, 0]).astype(np.int64)
+    y = np.rint(ys + u[:, 1]).astype(np.int64)
+    ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    out[y[ok], x[ok]] = 1
+    return cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
+
+
 @dataclass(frozen=True)
 class DISFlowConfig:
     """Settings of the ``dis`` flow back end."""

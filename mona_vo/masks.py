@@ -19,14 +19,26 @@ Per frame t (stages timed in ``MaskFrame.seconds``):
                     whose step jumps -- an occlusion -- falls back to the single step), the
                     camera motion fitted robustly to that flow at the frame's max-texture grid
                     points (the anchor rule, on a finer grid; homography or epipolar as the
-                    frame's track window chose), and each pixel's residual against it, in
+                    frame's track window chose, except that a homography window gives way to the
+                    epipolar model while the camera turns slower than
+                    ``dynamic_points.homography_min_turn_deg``: then the translation's parallax
+                    of near static structure -- a road, a bush -- is no small share of the image
+                    motion, and a homography would turn it into "motion"; measured on DAVIS
+                    car-shadow, J 0.49 -> 0.58), and each pixel's residual against it, in
                     pixels per frame (:func:`mona_vo.dynamic_points.residual_map`). With
                     ``motion_memory`` > 0 the previous frame's map, carried along the flow and
                     scaled by it, is a floor (a mover stays found in a frame where its motion
                     happens to run along its epipolar lines). The map is thresholded at
                     ``motion_theta = max(theta_t, noise_factor * 1.4826 * median)``, the median over
                     the map's non-zero pixels.
-``detection``       boxes (``config.detector``; ``motion`` uses the motion map).
+``detection``       boxes (``config.detector``; ``motion`` uses the motion map, the groups of
+                    dynamic points and the prior below). With ``mask_prior`` the previous frame's
+                    mask, carried into this frame along the flow
+                    (:func:`mona_vo.flow.forward_warp_mask`), is passed as
+                    ``FrameContext.prior_mask``: a mover
+                    found once stays proposed and seeded while it moves along its epipolar lines,
+                    and the box filter still asks for its dynamic points. Not in 'points' mode,
+                    which prompts with the points only.
 ``box_filter``      the paper's adaptive filter with ``tau0`` (:mod:`mona_vo.box_filter`).
 ``segmentation``    the prompts (``config.prompt``) to ``config.segmenter``.
 
@@ -45,11 +57,13 @@ import numpy as np
 from mona_vo.box_filter import UNIT_RULES, BoxFilterResult, adaptive_box_filter
 from mona_vo.conventions import Intrinsics
 from mona_vo.detection import (DETECTORS, Boxes, Detector, FrameContext, MotionDetectorConfig)
-from mona_vo.dynamic_points import (NO_MODEL, DynamicPoints, DynamicPointsConfig,
-                                    DynamicPointsTracker, adaptive_threshold, classify_window,
-                                    default_intrinsics, fit_camera_motion, residual_map)
+from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, NO_MODEL, DynamicPoints,
+                                    DynamicPointsConfig, DynamicPointsTracker,
+                                    adaptive_threshold, classify_window, default_intrinsics,
+                                    fit_camera_motion, residual_map, turning_fast)
 from mona_vo.errors import ConfigError, InputError
-from mona_vo.flow import FLOWS, DISFlowConfig, Flow, chain_flows, mean_flow_magnitude, resize_flow
+from mona_vo.flow import (FLOWS, DISFlowConfig, Flow, chain_flows, forward_warp_mask,
+                          mean_flow_magnitude, resize_flow)
 from mona_vo.point_selection import grid_points, texture_score
 from mona_vo.segmentation import SEGMENTERS, GrabCutConfig, Segmenter
 from mona_vo.tracking import TRACKERS, Tracker, to_gray
@@ -88,6 +102,13 @@ class MaskConfig:
     motion_grid_cols: int = 24              # motion-map camera fit: grid columns (anchor rule)
     motion_grid_rows: int = 10              # motion-map camera fit: grid rows
     motion_model_threshold_px: float = 0.25  # robust-fit threshold of that fit, analysis pixels
+    motion_model: str = "window"            # model of that fit: window (the one the frame's
+                                            # track window chose; epipolar when the camera
+                                            # turns slowly: dynamic_points.
+                                            # homography_min_turn_deg) | epipolar | homography
+    mask_prior: bool = True                 # the previous frame's mask, carried along the flow,
+                                            # is a prior of the detector and the segmenter
+                                            # (not in 'points' mode: prompts only)
     dynamic_points: DynamicPointsConfig = field(default_factory=DynamicPointsConfig)  # module 1
     dis: DISFlowConfig = field(default_factory=DISFlowConfig)            # 'dis' flow settings
     motion: MotionDetectorConfig = field(default_factory=MotionDetectorConfig)  # 'motion' detector
@@ -118,6 +139,8 @@ class MaskConfig:
             raise ConfigError("motion_travel_px must be >= 0")
         if self.motion_grid_cols < 2 or self.motion_grid_rows < 2:
             raise ConfigError("motion_grid_cols and motion_grid_rows must be at least 2")
+        if self.motion_model not in ("window", "epipolar", "homography"):
+            raise ConfigError("motion_model must be window, epipolar or homography")
         if self.motion_model_threshold_px <= 0:
             raise ConfigError("motion_model_threshold_px must be > 0")
         self.dynamic_points.validate()
@@ -209,6 +232,7 @@ class MonaMasker:
         self._seconds: dict[int, dict[str, float]] = {}
         self._prev_map: np.ndarray | None = None        # motion map of the last frame emitted
         self._prev_flow: np.ndarray | None = None       # and its flow to the next frame
+        self._prev_mask: np.ndarray | None = None       # and its mask, full resolution
         self._last_image: np.ndarray | None = None      # the last frame pushed
         self._prev_image: np.ndarray | None = None      # the one before it
 
@@ -360,6 +384,15 @@ class MonaMasker:
         return cv2.remap(prev_map, gx - flow[..., 0], gy - flow[..., 1], cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
 
+    def _carry_prior(self) -> np.ndarray:
+        """The previous frame's mask at the analysis resolution, carried into this frame along
+        the flow between them."""
+        flow = self._prev_flow
+        fh, fw = flow.shape[:2]
+        small = cv2.resize(self._prev_mask.astype(np.float32), (fw, fh),
+                           interpolation=cv2.INTER_AREA) > 0.5
+        return forward_warp_mask(small, flow)
+
     def _emit_ready(self, final: bool) -> list[MaskFrame]:
         out = []
         last = self._n - 1
@@ -381,8 +414,14 @@ class MonaMasker:
         t0 = time.perf_counter()
         # The dense fit takes the model (homography or epipolar) the frame's track window chose:
         # its long-baseline, precisely tracked anchors decide it more reliably.
-        mmap = self._motion_map(p, last, dyn.camera_model if dyn.camera_model != NO_MODEL
-                                else None)
+        model = dyn.camera_model if dyn.camera_model != NO_MODEL else None
+        if cfg.motion_model != "window":
+            model = cfg.motion_model
+        elif model == HOMOGRAPHY and not turning_fast(
+                self._m.get(p, self._m.get(p - 1, 0.0)), self.intrinsics,
+                cfg.dynamic_points.homography_min_turn_deg):
+            model = EPIPOLAR
+        mmap = self._motion_map(p, last, model)
         if mmap is not None and cfg.motion_memory > 0 and self._prev_map is not None:
             mmap = np.maximum(mmap, cfg.motion_memory * self._carry_forward(self._prev_map))
         t1 = time.perf_counter()
@@ -394,7 +433,12 @@ class MonaMasker:
             spread = 1.4826 * float(np.median(mmap[mmap > 0]))
             motion_theta = max(theta, cfg.dynamic_points.noise_factor * spread)
         dyn_xy = dyn.dynamic_points
-        context = FrameContext(self._index[p], mmap, theta, m_t, dyn_xy, motion_theta)
+        prior = None
+        if (cfg.mask_prior and cfg.prompt != "points" and self._prev_mask is not None
+                and self._prev_flow is not None and self._prev_mask.any()):
+            prior = self._carry_prior()
+        context = FrameContext(self._index[p], mmap, theta, m_t, dyn_xy, motion_theta, dyn.points,
+                               prior, dyn.residual[dyn.is_dynamic])
         boxes = Boxes.empty() if cfg.prompt == "points" else self.detector.detect(image, context)
         t2 = time.perf_counter()
         filt = None
@@ -421,6 +465,7 @@ class MonaMasker:
         # later frames' m_t are their own (or, for the last frame, its backward flow's).
         del self._images[p]
         self._prev_map, self._prev_flow = mmap, self._flows.pop(p, None)
+        self._prev_mask = mask
         self._m.pop(p - 1, None)
         index = self._index.pop(p)
         return MaskFrame(index, mask, dyn, boxes, kept, filt, mmap, sec)

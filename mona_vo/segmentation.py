@@ -9,13 +9,18 @@ initialised from motion and prompts, per prompt region:
 
 * box prompt: the region of interest is the box grown by ``context_margin_frac``; its outermost
   pixels are background (``GC_BGD``), the ring around the box probable background (a box may cut
-  its object; GrabCut may grow it there). Inside the box, pixels whose motion-map value exceeds
-  ``fg_factor * motion_theta`` and ``peak_frac`` times the box's 95th-percentile motion are
-  probable foreground, the others probable background. With no motion map, or when less than
-  ``min_moving_frac`` of the box moves, an inner rectangle of the box is probable foreground, as
-  in GrabCut's own rectangle initialisation (a box prompt says "an object is here", as for SAM).
-  When GrabCut keeps less than ``min_keep_frac`` of the moving pixels (colours shared with the
-  background), the moving pixels are added back (for points: the inner disks).
+  its object; GrabCut may grow it there). Probable foreground seeds: inside the box, pixels whose
+  motion-map value exceeds ``fg_factor * motion_theta`` and ``peak_frac`` times the box's
+  95th-percentile motion; in the whole region, the previous frame's mask carried into this frame
+  (``FrameContext.prior_mask``, eroded by one pixel; ``prior_seed``) and disks of radius
+  ``point_seed_frac`` (of the diagonal) on the dynamic points inside the box. The prior and the
+  points keep a mover whose motion runs along its epipolar lines for a few frames (the dense map
+  misses it) segmented (measured: synthetic one-large IoU 0.85 -> 0.89, DAVIS dog J 0.56 ->
+  0.64). When the seeds cover less than ``min_moving_frac`` of the box, an inner rectangle of
+  the box is probable foreground, as in GrabCut's own rectangle initialisation (a box prompt
+  says "an object is here", as for SAM). When GrabCut keeps less than ``min_keep_frac`` of the
+  seeds (colours shared with the background), the seeds are added back (for points: the inner
+  disks).
 * point prompts (no boxes): points are grouped (single linkage, ``point_link_frac`` of the image
   diagonal) and each group is cut on its own. The mask stays within ``point_radius_frac`` (of the
   diagonal) of the points; disks of half that radius are probable foreground, the rest of the
@@ -23,8 +28,10 @@ initialised from motion and prompts, per prompt region:
   prompts: the ablation compares prompt types). So a points-only prompt gives smaller, local and
   often incomplete masks, as the paper's ablation reports for SAM.
 
-The mask is upsampled to the image size and dilated by ``dilate_px`` (masks feed a VO that must
-not use a point on a mover: a slightly too large mask costs less than a missed rim).
+The mask is upsampled to the image size, its edge moved onto the image edges nearby by a guided
+filter (``refine_radius_px``, ``refine_eps``; GrabCut itself runs at ``work_width``, as GrabCut
+on a 200 x 200 crop already costs about 90 ms), and dilated by ``dilate_px`` (masks feed a VO
+that must not use a point on a mover: a slightly too large mask costs less than a missed rim).
 
 Method ``motion`` is a cheaper alternative: the moving pixels inside the prompt regions, without
 colour.
@@ -39,7 +46,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from mona_vo.detection import Boxes, FrameContext, box_pixel_ranges, moving_region_mask
+from mona_vo.detection import (Boxes, FrameContext, box_pixel_ranges, group_points,
+                               moving_region_mask)
 from mona_vo.errors import ConfigError
 from mona_vo.registry import Registry
 
@@ -75,10 +83,18 @@ class GrabCutConfig:
     peak_frac: float = 0.25          # ... and > peak_frac x the box's 95th-percentile motion
     point_radius_frac: float = 0.025  # points: reach of a point prompt, fraction of the diagonal
     point_link_frac: float = 0.08    # points closer than this (fraction of diagonal) group
-    dilate_px: int = 3               # final mask dilation, full-resolution pixels
+    prior_seed: bool = True          # boxes: the previous mask carried here seeds the foreground
+    point_seed_frac: float = 0.012   # boxes: disks of this radius (fraction of the diagonal) on
+                                     # the dynamic points inside a box seed its foreground
+    refine_radius_px: int = 8        # guided-filter radius moving the upsampled mask edge onto
+                                     # image edges, full-resolution pixels (0: off)
+    refine_eps: float = 0.01         # its ridge, (grey level / 255)^2: edges weaker than about
+                                     # sqrt(eps) x 255 grey levels do not move the mask edge
+    dilate_px: int = 2               # final mask dilation, full-resolution pixels
     max_regions: int = 8             # at most this many prompt regions are segmented
     min_moving_frac: float = 0.02    # a box with fewer moving pixels than this share is segmented
                                      # by colour from a centred rectangle (a box means an object)
+    seed: int = 0                    # OpenCV RNG seed set before each GrabCut (reproducible)
     min_keep_frac: float = 0.3       # GrabCut keeping less than this share of a region's moving
                                      # (points: prompted) pixels is overruled: they are added
 
@@ -93,39 +109,73 @@ class GrabCutConfig:
             raise ConfigError("grabcut.peak_frac must be in [0, 1)")
         if self.context_margin_frac < 0 or self.fg_factor <= 0:
             raise ConfigError("grabcut.context_margin_frac must be >= 0 and fg_factor > 0")
+        if self.point_seed_frac < 0:
+            raise ConfigError("grabcut.point_seed_frac must be >= 0")
         if self.point_radius_frac <= 0 or self.point_link_frac < 0:
             raise ConfigError("grabcut.point_radius_frac must be > 0, point_link_frac >= 0")
         if not 0 <= self.min_moving_frac <= 1:
             raise ConfigError("grabcut.min_moving_frac must be in [0, 1]")
         if not 0 <= self.min_keep_frac <= 1:
             raise ConfigError("grabcut.min_keep_frac must be in [0, 1]")
+        if self.refine_radius_px < 0 or self.refine_eps <= 0:
+            raise ConfigError("grabcut.refine_radius_px must be >= 0 and refine_eps > 0")
         if self.dilate_px < 0 or self.max_regions < 1:
             raise ConfigError("grabcut.dilate_px must be >= 0 and max_regions >= 1")
 
 
-def group_points(points: np.ndarray, link_px: float) -> list[np.ndarray]:
-    """Single-linkage groups of (N, 2) points: two points closer than ``link_px`` share a group.
-    Returns index arrays, largest group first."""
-    p = np.asarray(points, np.float64).reshape(-1, 2)
-    n = len(p)
-    if n == 0:
-        return []
-    parent = np.arange(n)
+def guided_filter(guide: np.ndarray, src: np.ndarray, radius: int, eps: float,
+                  subsample: int = 1) -> np.ndarray:
+    """He et al.'s guided filter (ECCV 2010): ``src`` (h, w) float32 smoothed so that its edges
+    follow those of ``guide`` (h, w) float32 (same size): per window of ``(2 radius + 1)^2``
+    pixels the output is ``a * guide + b`` fitted to ``src`` by least squares with the ridge
+    ``eps`` (in guide units squared), the coefficients then averaged over the windows. With
+    ``subsample`` s > 1 the coefficients are computed on images s times smaller and upsampled
+    (He and Sun's fast guided filter, 2015)."""
+    h, w = guide.shape
+    s = max(int(subsample), 1)
+    if s > 1 and min(h, w) >= 4 * s:
+        size = (max(w // s, 1), max(h // s, 1))
+        gi = cv2.resize(guide, size, interpolation=cv2.INTER_AREA)
+        sp = cv2.resize(src, size, interpolation=cv2.INTER_AREA)
+        r = max(radius // s, 1)
+    else:
+        gi, sp, r = guide, src, radius
+    k = (2 * r + 1, 2 * r + 1)
 
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
+    def box(x):
+        return cv2.boxFilter(x, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
 
-    d = np.linalg.norm(p[:, None] - p[None], axis=2)
-    for i, j in zip(*np.nonzero(np.triu(d <= link_px, 1))):
-        ri, rj = find(i), find(j)
-        if ri != rj:
-            parent[ri] = rj
-    roots = np.array([find(i) for i in range(n)])
-    groups = [np.nonzero(roots == r)[0] for r in np.unique(roots)]
-    return sorted(groups, key=len, reverse=True)
+    mean_i, mean_p = box(gi), box(sp)
+    cov_ip = box(gi * sp) - mean_i * mean_p
+    var_i = box(gi * gi) - mean_i * mean_i
+    a = cov_ip / (var_i + eps)
+    b = mean_p - a * mean_i
+    a, b = box(a), box(b)
+    if a.shape != (h, w):
+        a = cv2.resize(a, (w, h), interpolation=cv2.INTER_LINEAR)
+        b = cv2.resize(b, (w, h), interpolation=cv2.INTER_LINEAR)
+    return a * guide + b
+
+
+def refine_edges(image: np.ndarray, soft: np.ndarray, radius: int, eps: float) -> np.ndarray:
+    """(H, W) float32 ``soft`` (a mask upsampled from the segmentation resolution, values in
+    [0, 1]) guided-filtered (fast variant, coefficients at a quarter resolution) with the grey of
+    the (H, W, 3) uint8 RGB image as guide, within the mask's bounding box grown by the filter's
+    reach (the rest is returned as given): the blocky edge of the upsampled mask moves onto the
+    image edges nearby."""
+    x, y, w, h = cv2.boundingRect((soft > 0.02).astype(np.uint8))
+    if w == 0 or h == 0:
+        return soft
+    H, W = soft.shape
+    pad = 2 * radius + 2
+    r0, r1 = max(y - pad, 0), min(y + h + pad, H)
+    c0, c1 = max(x - pad, 0), min(x + w + pad, W)
+    gray = cv2.cvtColor(np.ascontiguousarray(image[r0:r1, c0:c1]),
+                        cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
+    out = soft.copy()
+    out[r0:r1, c0:c1] = guided_filter(gray, np.ascontiguousarray(soft[r0:r1, c0:c1]), radius, eps,
+                                      subsample=4)
+    return out
 
 
 @SEGMENTERS.register("grabcut")
@@ -165,6 +215,10 @@ class GrabCutSegmenter(Segmenter):
         c0, r0, c1, r1 = roi
         labels = init.copy()
         bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+        # GrabCut seeds its colour models by k-means drawing from OpenCV's global RNG, whose
+        # state depends on every earlier call: reseeded here, a region's mask depends on the
+        # region only (measured: DAVIS J varied by up to 0.1 between runs otherwise).
+        cv2.setRNGSeed(self.config.seed)
         try:
             cv2.grabCut(np.ascontiguousarray(small[r0:r1, c0:c1]), labels, None, bgd, fgd,
                         self.config.iterations, cv2.GC_INIT_WITH_MASK)
@@ -178,8 +232,10 @@ class GrabCutSegmenter(Segmenter):
         return seg
 
     # -- prompts -----------------------------------------------------------------------------
-    def _box_region(self, small, box_s, mm, theta):
-        """Mask (small size) of one box given in small-image pixel coordinates."""
+    def _box_region(self, small, box_s, mm, theta, prior=None, pts_s=None):
+        """Mask (small size) of one box given in small-image pixel coordinates; ``prior`` (small
+        size bool, or None) the previous mask carried here, ``pts_s`` (N, 2) the dynamic points
+        in small-image pixels (or None)."""
         h, w = small.shape[:2]
         cfg = self.config
         bw, bh = box_s[2] - box_s[0], box_s[3] - box_s[1]
@@ -197,26 +253,38 @@ class GrabCutSegmenter(Segmenter):
         init[[0, -1], :] = cv2.GC_BGD
         init[:, [0, -1]] = cv2.GC_BGD
         inner = (slice(q0 - r0, q1 - r0), slice(b0 - c0, b1 - c0))
-        moving = None
+        # Foreground seeds: what moves in the box, the previous mask carried here, disks on the
+        # dynamic points.
+        seed = np.zeros((r1 - r0, c1 - c0), bool)
         if mm is not None:
             crop = mm[q0:q1, b0:b1]
             # Relative to the box's strongest motion too: a mover's box may hold weaker motion
             # (parallax, flow bleeding) that is not part of it.
             peak = float(np.quantile(crop, 0.95)) if crop.size else 0.0
-            moving = moving_region_mask(crop, max(cfg.fg_factor * theta, cfg.peak_frac * peak),
-                                        0, 1)
-            if moving.mean() < cfg.min_moving_frac:
-                moving = None   # nothing moves in the box: segment its object by colour alone
-        if moving is not None:
-            init[inner] = np.where(moving, cv2.GC_PR_FGD, cv2.GC_PR_BGD)
-            fallback_inner = moving
+            seed[inner] = moving_region_mask(crop, max(cfg.fg_factor * theta,
+                                                       cfg.peak_frac * peak), 0, 1)
+        if prior is not None and cfg.prior_seed:
+            # Eroded: the carried mask was dilated (dilate_px) and its rim is the least sure.
+            p = cv2.erode(prior[r0:r1, c0:c1].astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+            seed |= p
+        if pts_s is not None and len(pts_s):
+            rad = max(int(round(cfg.point_seed_frac * np.hypot(w, h))), 1)
+            inside = ((pts_s[:, 0] >= b0) & (pts_s[:, 0] < b1) & (pts_s[:, 1] >= q0)
+                      & (pts_s[:, 1] < q1))
+            disks = np.zeros(seed.shape, np.uint8)
+            for x, y in pts_s[inside]:
+                cv2.circle(disks, (int(round(x - c0)), int(round(y - r0))), rad, 1, -1)
+            seed |= disks > 0
+        seed[init == cv2.GC_BGD] = False
+        if seed[inner].mean() >= cfg.min_moving_frac:
+            init[seed] = cv2.GC_PR_FGD
+            fallback = seed
         else:
-            init[inner] = cv2.GC_PR_BGD
+            # Nothing moves in the box: segment its object by colour from a centred rectangle.
             iy, ix = max((q1 - q0) // 8, 0), max((b1 - b0) // 8, 0)
             init[q0 - r0 + iy:q1 - r0 - iy, b0 - c0 + ix:b1 - c0 - ix] = cv2.GC_PR_FGD
-            fallback_inner = np.ones((q1 - q0, b1 - b0), bool)
-        fallback = np.zeros(init.shape, bool)
-        fallback[inner] = fallback_inner
+            fallback = np.zeros(init.shape, bool)
+            fallback[inner] = True
         seg = self._cut(small, init, (c0, r0, c1, r1), fallback)
         seg[init == cv2.GC_BGD] = False
         out[r0:r1, c0:c1] = seg
@@ -267,18 +335,31 @@ class GrabCutSegmenter(Segmenter):
         theta = float(context.motion_theta) if context is not None else 0.0
         acc = np.zeros((h, w), bool)
         if has_boxes:
+            prior = None
+            if context is not None and context.prior_mask is not None:
+                prior = context.prior_mask
+                if prior.shape != (h, w):
+                    prior = cv2.resize(prior.astype(np.uint8), (w, h),
+                                       interpolation=cv2.INTER_NEAREST) > 0
+            dyn = None
+            if context is not None and len(context.dynamic_points):
+                d = np.asarray(context.dynamic_points, np.float64).reshape(-1, 2)
+                dyn = np.stack([(d[:, 0] + 0.5) * sx - 0.5, (d[:, 1] + 0.5) * sy - 0.5], axis=1)
             order = np.argsort(-np.asarray(boxes.score))[:cfg.max_regions]
             for b in np.asarray(boxes.xyxy, np.float64)[order]:
                 bs = np.array([(b[0] + 0.5) * sx - 0.5, (b[1] + 0.5) * sy - 0.5,
                                (b[2] + 0.5) * sx - 0.5, (b[3] + 0.5) * sy - 0.5])
-                acc |= self._box_region(small, bs, mm, theta)
+                acc |= self._box_region(small, bs, mm, theta, prior, dyn)
         else:
             ps = np.stack([(pts[:, 0] + 0.5) * sx - 0.5, (pts[:, 1] + 0.5) * sy - 0.5], axis=1)
             link = cfg.point_link_frac * np.hypot(w, h)
             for idx in group_points(ps, link)[:cfg.max_regions]:
                 acc |= self._point_region(small, ps[idx])
         if (w, h) != (W, H):
-            full = cv2.resize(acc.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR) > 0.5
+            soft = cv2.resize(acc.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
+            if cfg.refine_radius_px > 0 and acc.any():
+                soft = refine_edges(image, soft, cfg.refine_radius_px, cfg.refine_eps)
+            full = soft > 0.5
         else:
             full = acc
         if cfg.dilate_px > 0 and full.any():

@@ -2,6 +2,8 @@
 threshold, and the streaming track windows."""
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -150,3 +152,50 @@ def test_track_windows_share_one_frame_and_flush_only_new_frames():
         tr2.push(k, f)
     last = tr2.flush()
     assert list(last.frame_indices) == [6, 7]
+
+
+class _LosingTracker(LKTracker):
+    """An LK tracker that loses the given share of its tracks at the given frames (a fast pan
+    carrying points out of the image)."""
+
+    def __init__(self, lose_at):
+        super().__init__()
+        self.lose_at, self.k = lose_at, 0
+
+    def step(self, image):
+        update = super().step(image)
+        share = self.lose_at.get(self.k, 0.0)
+        self.k += 1
+        if share and len(update.ids):
+            n = int(round(share * len(update.ids)))
+            vis = update.visible.copy()
+            vis[:n] = False
+            self.remove(update.ids[:n])
+            update = dataclasses.replace(update, visible=vis)
+        return update
+
+
+def test_window_ends_early_when_most_tracks_are_lost():
+    big = textured(H + 40, W + 60)
+    frames = [big[20:20 + H, 2 * k:2 * k + W].copy() for k in range(8)]
+    cfg = DynamicPointsConfig(window=6, n_detection=50, min_tracked_frac=0.5)
+    tr = DynamicPointsTracker(cfg, _LosingTracker({2: 0.7}))
+    closed = [w for w in (tr.push(k, f) for k, f in enumerate(frames)) if w is not None]
+    # Frame 2 keeps 30 % of the window's tracks: the window closes there, the next one starts.
+    assert [list(w.frame_indices) for w in closed][0] == [0, 1, 2]
+    tr = DynamicPointsTracker(dataclasses.replace(cfg, min_tracked_frac=0.0),
+                              _LosingTracker({2: 0.7}))
+    closed = [w for w in (tr.push(k, f) for k, f in enumerate(frames)) if w is not None]
+    assert [list(w.frame_indices) for w in closed][0] == [0, 1, 2, 3, 4, 5]
+
+
+def test_every_pair_of_a_window_uses_the_window_model():
+    # A translating camera over a deep scene: the window is epipolar; the residual vectors of
+    # the static detection points then stay small in every pair, the patch's do not.
+    window, is_patch, m = parallax_window(n_frames=7, noise_px=0.05)
+    out = classify_window(window, m, DynamicPointsConfig(), INTR)
+    assert all(o.camera_model == EPIPOLAR for o in out)
+    res = out[0].residual_xy
+    assert res.shape == (len(out[0].points), 2)
+    np.testing.assert_allclose(np.linalg.norm(res, axis=1), out[0].residual, rtol=1e-5)
+    assert np.median(out[0].residual[~is_patch]) < 0.1 < np.median(out[0].residual[is_patch])

@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from mona_vo.flow import (FLOWS, DISFlow, DISFlowConfig, chain_flows, mean_flow_magnitude,
-                          resize_flow)
+from mona_vo.flow import (FLOWS, DISFlow, DISFlowConfig, chain_flows, forward_warp_mask,
+                          mean_flow_magnitude, resize_flow)
 
 # Measured on alley_1 frame_0002 -> frame_0003 (clean) with the default DIS settings (medium
 # preset at half resolution): EPE 0.47 px over the non-occluded pixels (GT mean motion 3.0 px).
@@ -85,3 +85,17 @@ def test_chain_flows_flags_sudden_changes_of_step():
 def test_registry_names_dis_and_a_lazy_raft_loader():
     assert {"dis", "raft"} <= set(FLOWS.names())
     assert FLOWS.get("dis") is DISFlow
+
+
+def test_forward_warp_mask_moves_pixels_along_their_own_flow():
+    mask = np.zeros((40, 60), bool)
+    mask[10:20, 10:20] = True
+    flow = np.zeros((40, 60, 2), np.float32)
+    flow[..., 0] = 5.0                         # everything moves 5 px right ...
+    flow[10:20, 10:20] = (-3.0, 2.0)           # ... except the masked patch
+    out = forward_warp_mask(mask, flow)
+    expected = np.zeros_like(mask)
+    expected[12:22, 7:17] = True
+    np.testing.assert_array_equal(out, expected)
+    flow[10:20, 10:20] = (55.0, 0.0)           # leaves the image: dropped
+    assert not forward_warp_mask(mask, flow).any()
