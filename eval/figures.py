@@ -11,7 +11,7 @@ Two kinds, each written as a PNG under 1 MB:
     computed over the whole clip (the masker needs its look-ahead) with ``MaskConfig(prompt=...)``
     for each mode, the shown frames kept.
 
-``bonn_trajectory*.png``
+``bonn_trajectory.png``
     Camera centres of the Bonn clip, top and side views: the ground truth against the ``none``
     and ``mona`` runs of ``mona-vo eval tum --root .../bonn_crowd --variants none,mona --out
     runs/bonn``, each Sim(3)-aligned to the GT samples nearest its timestamps (for drawing; the
@@ -311,8 +311,7 @@ def make_figures(out_dir: str | Path, *, data: str | Path = DEFAULT_DATA,
                  runs: str | Path = "runs", clips: Sequence[str] | None = None,
                  cell_width: int = 300) -> list[Path]:
     """Every picture: the prompt strip of each clip in :data:`CLIPS` (or those named) and the
-    Bonn trajectory of each ``mona-vo eval tum`` run folder found (``runs/bonn``, and
-    ``runs/bonn_init05`` for the relaxed-initialisation run). Returns the files written."""
+    Bonn trajectory of the ``mona-vo eval tum`` runs in ``runs/bonn``. Returns the files written."""
     from data_tools.calibration import parse_calibration
     from data_tools.frames import open_frames
 
@@ -332,23 +331,18 @@ def make_figures(out_dir: str | Path, *, data: str | Path = DEFAULT_DATA,
         written.append(write_png(out_dir / f"{clip.name}_prompts.png", image))
         log.info("wrote %s", written[-1])
     gt = data / "bonn_crowd" / "groundtruth.txt"
-    for name, sub, note in (("bonn_trajectory.png", "bonn", "default config"),
-                            ("bonn_trajectory_init05.png", "bonn_init05",
-                             "--set vo.init_min_parallax_deg=0.5")):
-        if clips is not None and "bonn_trajectory" not in clips:
-            continue
+    bonn_runs = runs / "bonn"
+    if clips is None or "bonn_trajectory" in clips:
         if not gt.is_file():
-            log.warning("%s: absent, no %s", gt, name)
-            continue
-        if not (runs / sub).is_dir():
-            extra = " --set vo.init_min_parallax_deg=0.5" if sub == "bonn_init05" else ""
-            log.warning("%s: absent, no %s; make it with `mona-vo eval tum --root %s --variants "
-                        "none,mona --out %s%s`", runs / sub, name, gt.parent, runs / sub, extra)
-            continue
-        written.append(bonn_trajectory_figure(
-            out_dir / name, runs / sub, gt,
-            title=f"Bonn rgbd_bonn_crowd, 53 frames: mona-vo eval tum ({note}), Sim(3)-aligned"))
-        log.info("wrote %s", written[-1])
+            log.warning("%s: absent, no Bonn trajectory picture", gt)
+        elif not bonn_runs.is_dir():
+            log.warning("%s: absent, no Bonn trajectory picture; make it with `mona-vo eval tum "
+                        "--root %s --variants none,mona --out %s`", bonn_runs, gt.parent, bonn_runs)
+        else:
+            written.append(bonn_trajectory_figure(
+                out_dir / "bonn_trajectory.png", bonn_runs, gt,
+                title="Bonn rgbd_bonn_crowd, 53 frames: mona-vo eval tum, Sim(3)-aligned"))
+            log.info("wrote %s", written[-1])
     return written
 
 
@@ -357,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the PNGs (e.g. docs)")
     p.add_argument("--data", default=str(DEFAULT_DATA), help="shared real-data root (default ../shared/data)")
-    p.add_argument("--runs", default="runs", help="folder holding the eval tum runs bonn/ and bonn_init05/")
+    p.add_argument("--runs", default="runs", help="folder holding the eval tum runs (bonn/)")
     p.add_argument("--only", help="comma-separated picture names: " + ", ".join(c.name for c in CLIPS)
                    + ", bonn_trajectory")
     p.add_argument("--cell-width", type=int, default=300, help="width of one strip cell, pixels")

@@ -74,6 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--preset", default="one-large", help="synthetic scene preset (static, one-large, several, fast-rotation)")
     d.add_argument("--seed", type=int, default=5, help="scene seed (default 5: a car keeps pace ahead of the camera)")
     d.add_argument("--frames", type=int, default=40, help="number of frames")
+    d.add_argument("--size", default="1024x436", help="image size WxH (default Sintel's 1024x436)")
     d.set_defaults(func=_cmd_demo)
 
     b = sub.add_parser("bench", help="speed and accuracy on generated 1024x436 scenes, beside COLMAP (pycolmap)",
@@ -199,8 +200,9 @@ def _cmd_masks(args) -> int:
 def _cmd_demo(args) -> int:
     from mona_vo.run import demo
 
-    out = demo(args.out, preset=args.preset, seed=args.seed, n_frames=args.frames,
-               progress=not args.quiet)
+    w, h = _parse_size(args.size)
+    out = demo(args.out, preset=args.preset, seed=args.seed, n_frames=args.frames, width=w,
+               height=h, progress=not args.quiet)
     print(f"synthetic '{out['preset']}' scene, seed {out['seed']}, {out['frames']} frames "
           f"{out['size'][0]}x{out['size'][1]}, camera path {out['path_length']:.2f} m")
     for variant, label in (("none", "no masks"), ("mona", "MONA masks"), ("gt", "GT masks")):
@@ -212,11 +214,23 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _parse_size(text: str) -> tuple[int, int]:
+    from mona_vo.errors import ConfigError
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--size expects WIDTHxHEIGHT, e.g. 1024x436, not '{text}'") from None
+    if w < 64 or h < 32:
+        raise ConfigError(f"--size {text} is too small (at least 64x32)")
+    return w, h
+
+
 def _cmd_bench(args) -> int:
     from eval.bench import bench, format_row, peak_memory_mb, summary_table
     from eval.vo_bench import parse_seeds
 
-    w, h = (int(v) for v in args.size.lower().split("x"))
+    w, h = _parse_size(args.size)
     rows = bench(args.presets.split(","), parse_seeds(args.seeds), n_frames=args.frames, width=w,
                  height=h, config=_pipeline_config(args), peer=not args.no_peer,
                  on_row=lambda r: print(format_row(r), flush=True))

@@ -99,3 +99,37 @@ def test_errors_are_one_line_with_the_path_and_exit_1(mona_vo_exe, tmp_path):
     assert not (tmp_path / "o" / "trajectory.txt").exists()
     proc = cli(mona_vo_exe, "run", tmp_path, "--out", tmp_path / "o", "--calib", "1,2,3", ok=False)
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
+
+
+def test_masks_command_writes_one_mask_per_frame(mona_vo_exe, small_scene, tmp_path):
+    folder, scene = small_scene
+    out = tmp_path / "m"
+    cli(mona_vo_exe, "masks", folder, "--out", out, "--max-frames", 12)
+    masks = sorted(p.name for p in (out / "masks").iterdir())
+    assert masks == [f"{i:05d}.png" for i in range(12)]
+    # The generated mover is found: some frames have a non-empty mask overlapping the truth.
+    from data_tools.masks_io import read_mask_png
+
+    overlaps = [(read_mask_png(out / "masks" / n) & read_mask_png(folder / "masks" / n)).sum() for n in masks]
+    assert sum(o > 0 for o in overlaps) >= 6
+
+
+def test_demo_prints_the_three_variants(mona_vo_exe, tmp_path):
+    proc = cli(mona_vo_exe, "demo", "--size", "384x164", "--frames", 16, "--out", tmp_path / "d")
+    lines = proc.stdout.splitlines()
+    assert lines[0].startswith("synthetic 'one-large' scene, seed 5, 16 frames 384x164")
+    for label in ("no masks", "MONA masks", "GT masks"):
+        row = next(line for line in lines if label in line)
+        ate = float(row.split("ATE ")[1].split(" m")[0])
+        assert 0 <= ate < 10
+    assert (tmp_path / "d" / "mona" / "trajectory.txt").exists()
+
+
+def test_bench_without_the_peer_reports_every_method(mona_vo_exe, tmp_path):
+    out = tmp_path / "bench.json"
+    proc = cli(mona_vo_exe, "bench", "--presets", "one-large", "--frames", 12, "--size", "320x136",
+               "--no-peer", "--out", out)
+    rows = json.loads(out.read_text())
+    assert [r["method"] for r in rows] == ["mona-vo (none)", "mona-vo (mona)", "mona-vo (gt)"]
+    assert all(r["frames_posed"] == 12 for r in rows)
+    assert "| method |" in proc.stdout and "peak memory" in proc.stdout
