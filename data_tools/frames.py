@@ -140,28 +140,35 @@ def bgr_to_rgb(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+def decode_file(path: Path, flags: int, what: str = "image") -> np.ndarray:
+    """cv2.imdecode of a file's bytes with ``flags``. Raises InputError naming the file (and
+    ``what`` it should hold) when it cannot be read or decoded (e.g. a truncated PNG)."""
+    try:
+        data = np.frombuffer(path.read_bytes(), np.uint8)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
+    # imdecode on bytes rather than imread: same decoder, but a read failure and a decode failure
+    # get different messages, and non-ASCII paths work on every platform.
+    out = None
+    if data.size:
+        with native_stderr_to_log(str(path)):
+            try:
+                out = cv2.imdecode(data, flags)
+            except cv2.error as exc:  # e.g. a header announcing more pixels than OpenCV allows
+                raise InputError(f"{path}: cannot decode {what} ({_cv2_reason(exc)})") from None
+    if out is None:
+        raise InputError(f"{path}: cannot decode {what} (truncated, corrupt or not an image)")
+    return out
+
+
 def decode_image(path: Path) -> np.ndarray:
     """(H, W, 3) uint8 RGB of an image file; grey images are repeated over 3 channels.
 
     Raises InputError naming the file when it cannot be read or decoded (e.g. a truncated PNG).
     """
-    try:
-        data = np.frombuffer(path.read_bytes(), np.uint8)
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read image ({exc.strerror or exc})") from None
-    # imdecode on bytes rather than imread: same decoder, but a read failure and a decode failure
-    # get different messages, and non-ASCII paths work on every platform. EXIF orientation is
-    # ignored so that the decoded size is the header's (image_size), which sizes the input.
-    bgr = None
-    if data.size:
-        with native_stderr_to_log(str(path)):
-            try:
-                bgr = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-            except cv2.error as exc:  # e.g. a header announcing more pixels than OpenCV allows
-                raise InputError(f"{path}: cannot decode image ({_cv2_reason(exc)})") from None
-    if bgr is None:
-        raise InputError(f"{path}: cannot decode image (truncated, corrupt or not an image)")
-    return bgr_to_rgb(bgr)
+    # EXIF orientation is ignored so that the decoded size is the header's (image_size), which
+    # sizes the input.
+    return bgr_to_rgb(decode_file(path, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION))
 
 
 def write_image(path: str | os.PathLike, image_rgb: np.ndarray) -> None:

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from data_tools.atomic import write_bytes_atomic
-from data_tools.frames import _cv2_reason, image_size, native_stderr_to_log
+from data_tools.frames import decode_file, image_size
 from mona_vo.errors import InputError
 
 _SHOWN = 5  # file names listed in a message before '...'
@@ -37,19 +37,7 @@ def read_mask_png(path: str | os.PathLike) -> np.ndarray:
     foreground; their union is the moving mask). Raises InputError naming the file.
     """
     path = Path(path)
-    try:
-        data = np.frombuffer(path.read_bytes(), np.uint8)
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read mask ({exc.strerror or exc})") from None
-    image = None
-    if data.size:
-        with native_stderr_to_log(str(path)):
-            try:
-                image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-            except cv2.error as exc:  # e.g. a header announcing more pixels than OpenCV allows
-                raise InputError(f"{path}: cannot decode mask image ({_cv2_reason(exc)})") from None
-    if image is None:
-        raise InputError(f"{path}: cannot decode mask image (truncated, corrupt or not an image)")
+    image = decode_file(path, cv2.IMREAD_UNCHANGED, "mask image")
     if image.ndim == 3:
         image = image[:, :, :3]  # an alpha channel is not part of the mask
         return np.any(image != 0, axis=2)
