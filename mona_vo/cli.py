@@ -27,6 +27,12 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
                         "default $MONA_VO_WEIGHTS")
 
 
+def _add_refine_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--refine", choices=["global", "none"], default=None,
+                   help="after the sliding window, one bundle adjustment over all keyframes (global, default) "
+                        "or none (streaming); same as --set vo.refine=...")
+
+
 def _add_mask_options(p: argparse.ArgumentParser, *, allow_folder: bool = True) -> None:
     if allow_folder:
         p.add_argument("--masks", default="mona", metavar="mona|none|DIR",
@@ -59,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="intrinsics in pixels, or a file (fx fy cx cy, or KITTI calib.txt); default: a 60-degree field-of-view guess")
     _add_mask_options(r)
     _add_config_options(r)
+    _add_refine_option(r)
     r.add_argument("--overlay", action="store_true", help="also write DIR/overlay.mp4 with masks, points and boxes drawn")
     r.add_argument("--gt", metavar="TUM_FILE", help="ground-truth trajectory to draw in trajectory.png")
     r.set_defaults(func=_cmd_run)
@@ -119,6 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     es.add_argument("--out", required=True, metavar="DIR", help="output folder")
     es.add_argument("--workers", type=int, default=1, help="runs in parallel (processes)")
     _add_config_options(es)
+    _add_refine_option(es)
     es.set_defaults(func=_cmd_eval_sintel)
 
     eu = esub.add_parser("tum", help="folders in TUM RGB-D layout (TUM, Bonn, ETH3D): ATE/RPE per variant")
@@ -129,6 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     eu.add_argument("--out", required=True, metavar="DIR", help="output folder")
     eu.add_argument("--workers", type=int, default=1, help="runs in parallel (processes)")
     _add_config_options(eu)
+    _add_refine_option(eu)
     eu.set_defaults(func=_cmd_eval_tum)
 
     ef = esub.add_parser("flow", help="end-point error and speed of a flow back end on one pair with GT flow, as JSON",
@@ -171,6 +180,8 @@ def _pipeline_config(args):
     if getattr(args, "weights", None):
         overrides["masks.weights"] = args.weights
         overrides["vo.tracker_checkpoint"] = args.weights
+    if getattr(args, "refine", None):
+        overrides["vo.refine"] = args.refine
     cfg = load_config(PipelineConfig, None, overrides)
     return load_config(cfg, getattr(args, "config", None), parse_set_options(getattr(args, "set", [])))
 

@@ -70,6 +70,8 @@ class VOConfig:
     dynamic_prob_max: float = 0.9           # tracks above this dynamic probability twice are dropped
     refine_focal: bool = False              # refine one shared focal length while the first window
                                             # fills (needs rotation; see README's measurements)
+    refine: str = "global"                  # after the sliding window, one bundle adjustment over all
+                                            # keyframes (global) or none (streaming)
     ba: BAConfig = field(default_factory=BAConfig)
 
     def validate(self) -> None:
@@ -80,6 +82,8 @@ class VOConfig:
             raise ConfigError("vo.window_keyframes must exceed vo.fixed_keyframes >= 1")
         if self.point_score not in ("min_eigen", "gradient"):
             raise ConfigError("vo.point_score must be min_eigen or gradient")
+        if self.refine not in ("global", "none"):
+            raise ConfigError(f"config key 'vo.refine': expected global or none, got {self.refine!r}")
         self.ba.validate()
 
 
