@@ -61,6 +61,7 @@ Movers
 """
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -72,8 +73,9 @@ import numpy as np
 
 from data_tools.atomic import atomic_path, write_text_atomic
 from data_tools.sintel_formats import write_cam, write_dpt
-from mona_vo.conventions import Intrinsics, make_pose, tum_row
-from mona_vo.errors import MonaVoError
+from mona_vo.conventions import (Intrinsics, make_pose, relative_pose, rotation_angle_deg,
+                                 tum_row)
+from mona_vo.errors import ConfigError, MonaVoError
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +88,34 @@ PRESETS: dict[str, str] = {
                "least 70 % of the frames, together at most 50 % of the image",
     "fast-rotation": "camera panning and tilting fast (peak yaw rate 4-6 deg/frame) while slowly "
                      "moving forward, with one mover visible on at least half of the frames",
+    "creep": "slow hand-held creep: about 1 cm of translation per frame with small hand-held "
+             "rotation jitter, background 4-20 m away, one walking person (articulated)",
+    "pan": "pure rotation about the camera centre (tripod pan, 0.5-2 deg/frame, no translation "
+           "at all), one mover",
+    "mixed": "per seed, a draw from everything: 40-90 deg field of view, natural-image textures "
+             "(1/f spectra, low-texture and repetitive surfaces), a camera path from "
+             "CAMERA_PATHS, 1-3 movers (articulated people and animals, cars, slow movers, "
+             "movers entering and leaving, two movers crossing), image effects (motion blur, "
+             "noise, exposure change, JPEG) on the final image",
 }
+
+# Presets whose pixels are pinned for a seed (tests checksum them): their draws never change.
+LEGACY_PRESETS = ("static", "one-large", "several", "fast-rotation")
+
+# Camera paths of the newer presets; ``mixed`` draws one per seed (or takes SceneConfig.camera_path).
+CAMERA_PATHS: dict[str, str] = {
+    "street-walk": "the street path of the legacy presets: 0.05-0.25 m/frame, yaw 0.3-0.8 deg/frame",
+    "fast-rotation": "the fast-rotation path: yaw peaks 4-6 deg/frame, forward 0.03-0.08 m/frame",
+    "handheld": "slow walk 0.01-0.04 m/frame with hand-held shake (0.15-0.5 deg/frame jitter)",
+    "follow": "walking behind a mover at its pace (0.025-0.05 m/frame); the first mover keeps "
+              "pace ahead of the camera",
+    "pan": "pure rotation about a fixed centre, 0.5-2 deg/frame, no translation",
+    "slow-pan": "slow pan 0.2-0.6 deg/frame while drifting sideways 0.3-1.5 cm/frame",
+    "forward": "driving forward 0.2-0.45 m/frame at 1.2-1.6 m height, little rotation",
+    "creep": "slow hand-held creep, about 1 cm/frame, small rotation jitter",
+}
+MOVER_BEHAVIOURS = ("along", "crossing", "oncoming", "follow", "slow", "enter-leave", "cross-pair")
+EFFECTS = ("motion_blur", "noise", "exposure", "jpeg")
 
 # Coverage rules of the presets, on the coarse grid used while placing movers.
 _ONE_LARGE_RANGE = (0.16, 0.44)      # fraction of the image; a little inside 15-45 % for the grid
@@ -134,29 +163,58 @@ _PERSON_COLOURS = ((170, 50, 120), (45, 140, 160), (110, 60, 160), (200, 85, 70)
 _UV_AXES = ((1, 2), (0, 2), (0, 1))
 
 
+class SceneConfigError(ConfigError, ValueError):
+    """A :class:`SceneConfig` field is wrong; the message names the key (one line)."""
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
 @dataclass(frozen=True)
 class SceneConfig:
-    """What to render. Every field has a default; the preset is checked when the config is made."""
+    """What to render. Every field has a default and is checked when the config is made (one-line
+    :class:`SceneConfigError`, a ``ValueError``, naming the key)."""
 
-    width: int = 1024               # image width, pixels
-    height: int = 436               # image height, pixels
-    n_frames: int = 50              # number of frames
+    width: int = 1024               # image width, pixels (16-8192)
+    height: int = 436               # image height, pixels (16-8192)
+    n_frames: int = 50              # number of frames (2-100000)
     preset: str = "one-large"       # scene kind, a name in PRESETS
     seed: int = 0                   # seed of every random choice (non-negative integer)
-    hfov_deg: float | None = None   # horizontal field of view, degrees; None: drawn in [55, 75]
+    hfov_deg: float | None = None   # horizontal field of view, degrees [10, 150]; None: drawn
+    #                                 (55-75 deg, mixed 40-90 deg)
+    camera_path: str | None = None  # mixed only: a name in CAMERA_PATHS; None: drawn per seed
+    effects: bool = True            # mixed only: image effects on RenderedFrame.image (False: none)
 
     def __post_init__(self):
-        if self.preset not in PRESETS:
-            raise ValueError(f"unknown preset {self.preset!r}; valid presets: "
-                             f"{', '.join(PRESETS)}")
-        if self.width < 16 or self.height < 16:
-            raise ValueError(f"image size {self.width} x {self.height} is too small (at least 16)")
-        if self.n_frames < 2:
-            raise ValueError(f"n_frames must be at least 2, got {self.n_frames}")
-        if not (isinstance(self.seed, (int, np.integer)) and self.seed >= 0):
-            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
-        if self.hfov_deg is not None and not 10.0 <= self.hfov_deg <= 150.0:
-            raise ValueError(f"hfov_deg must be in [10, 150] degrees, got {self.hfov_deg}")
+        def bad(key, msg):
+            raise SceneConfigError(f"SceneConfig.{key}: {msg}")
+
+        if not isinstance(self.preset, str) or self.preset not in PRESETS:
+            bad("preset", f"unknown preset {self.preset!r}; valid presets: {', '.join(PRESETS)}")
+        for key, lo, hi in (("width", 16, 8192), ("height", 16, 8192), ("n_frames", 2, 100000)):
+            v = getattr(self, key)
+            if not _is_int(v):
+                bad(key, f"must be an integer, got {v!r}")
+            if not lo <= v <= hi:
+                bad(key, f"must be in [{lo}, {hi}], got {v}")
+        if not (_is_int(self.seed) and self.seed >= 0):
+            bad("seed", f"must be a non-negative integer, got {self.seed!r}")
+        if self.hfov_deg is not None:
+            if (isinstance(self.hfov_deg, (bool, np.bool_))
+                    or not isinstance(self.hfov_deg, (int, float, np.integer, np.floating))
+                    or not 10.0 <= float(self.hfov_deg) <= 150.0):
+                bad("hfov_deg", f"must be None or a number in [10, 150] degrees, "
+                                f"got {self.hfov_deg!r}")
+        if self.camera_path is not None:
+            if self.preset != "mixed":
+                bad("camera_path", f"only the mixed preset takes a camera path (preset "
+                                   f"{self.preset!r} has its own); leave it None")
+            if self.camera_path not in CAMERA_PATHS:
+                bad("camera_path", f"unknown camera path {self.camera_path!r}; valid: "
+                                   f"{', '.join(CAMERA_PATHS)}")
+        if not isinstance(self.effects, (bool, np.bool_)):
+            bad("effects", f"must be true or false, got {self.effects!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,6 +229,8 @@ class RenderedFrame:
     face_id: np.ndarray       # (H, W) int16: 6 * box + face of the visible surface (box 0 street)
     T_world_cam: np.ndarray   # (4, 4) float64 camera-to-world pose
     intrinsics: Intrinsics    # pinhole intrinsics, pixels
+    image_clean: np.ndarray | None = None  # (H, W, 3) uint8 RGB before the image effects (the
+    #                                        same array as ``image`` where there are none)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -235,8 +295,9 @@ def _point_box_distance(points, R, centre, half):
 # Textures
 
 
-@lru_cache(maxsize=4)
-def _spectral_filters(size: int) -> list[tuple[np.ndarray, np.ndarray]]:
+@lru_cache(maxsize=8)
+def _spectral_filters(size: int, slope: float = _SPECTRAL_SLOPE
+                      ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per mip level k, the rfft-layout amplitude filters (size, size // 2 + 1) float32 of the
     luminance and chroma fields: f^-slope times a Gaussian cut-off at the level's wavelength."""
     fy = np.fft.fftfreq(size)[:, None]
@@ -244,7 +305,7 @@ def _spectral_filters(size: int) -> list[tuple[np.ndarray, np.ndarray]]:
     f = np.hypot(fx, fy)
     f[0, 0] = 1.0
     fc = 1.0 / _FINEST_WAVELENGTH_TEXELS
-    power = f ** -_SPECTRAL_SLOPE
+    power = f ** -slope
     power[0, 0] = 0.0
     out = []
     k = 0
@@ -264,8 +325,11 @@ class _Texture:
     of any level sits at coordinate j (bilinear lookups wrap around).
     """
 
-    def __init__(self, rng, size: int, base_rgb, lum_std: float, chroma_std: float):
-        filters = _spectral_filters(size)
+    def __init__(self, rng, size: int, base_rgb, lum_std: float, chroma_std: float,
+                 slope: float = _SPECTRAL_SLOPE, pattern: np.ndarray | None = None):
+        """``pattern``: optional (size, size) float32 periodic luminance field, grey levels, added
+        to every level low-passed like the luminance noise (bricks, tiles, stripes)."""
+        filters = _spectral_filters(size, slope)
         shape = filters[0][0].shape
         # Field 0 (luminance) is broad band, fields 1 and 2 (chroma) an octave lower.
         noise = [rng.standard_normal(shape, dtype=np.float32)
@@ -282,6 +346,7 @@ class _Texture:
         self.levels: list[np.ndarray] = []   # level k: (S_k * S_k,) uint32, packed R, G, B, 0 bytes
         self.sizes: list[int] = []
         scale = None
+        pattern_fft = None if pattern is None else np.fft.rfft2(pattern).astype(np.complex64)
         for k, (low_broad, low_chroma) in enumerate(filters):
             sk = size >> k
             half = sk // 2
@@ -295,6 +360,12 @@ class _Texture:
             if scale is None:   # unit standard deviation of each field at level 0
                 scale = 1.0 / fields.reshape(-1, 3).std(axis=0)
             rgb = base + fields @ (scale[:, None] * mix).astype(np.float32)
+            if pattern_fft is not None:
+                s = pattern_fft * _gauss_filters(size)[k]
+                if half < size // 2:
+                    s = np.concatenate([s[:half, :half + 1], s[size - half:, :half + 1]], axis=0)
+                pat = np.fft.irfft2(s, s=(sk, sk)) * np.float32((sk / size) ** 2)
+                rgb = rgb + pat[..., None].astype(np.float32) * lum_dir.astype(np.float32)
             packed = np.zeros((sk, sk, 4), dtype=np.uint8)
             packed[..., :3] = np.clip(np.rint(rgb), 0, 255)
             self.levels.append(packed.view(np.uint32).reshape(-1))
@@ -410,12 +481,77 @@ class _Texture:
         return out[:, :3]
 
 
+@lru_cache(maxsize=8)
+def _gauss_filters(size: int) -> list[np.ndarray]:
+    """Per mip level k, the rfft-layout Gaussian cut-off (size, size // 2 + 1) float32 alone
+    (the luminance filter without its f^-slope), for the patterns."""
+    fy = np.fft.fftfreq(size)[:, None]
+    fx = np.fft.rfftfreq(size)[None, :]
+    f = np.hypot(fx, fy)
+    fc = 1.0 / _FINEST_WAVELENGTH_TEXELS
+    return [np.exp(-(f / (fc / 2 ** k)) ** 2).astype(np.float32)
+            for k in range(len(_spectral_filters(size)))]
+
+
+@dataclass(frozen=True)
+class _Style:
+    """How a material's texture looks (the legacy presets use the default everywhere)."""
+
+    slope: float = _SPECTRAL_SLOPE      # amplitude spectrum ~ f^-slope
+    lum_std: float = _LUM_STD           # luminance noise std, grey levels
+    chroma_std: float = _CHROMA_STD     # chroma noise std, grey levels
+    pattern: str = ""                   # "", "bricks", "tiles" or "stripes"
+    period: int = 0                     # pattern period, texels (divides the texture size)
+    pattern_amp: float = 0.0            # pattern amplitude, grey levels
+    pattern_seed: int = 0               # seed of the per-brick / per-tile brightness
+
+    @property
+    def label(self) -> str:
+        if self.pattern:
+            return self.pattern
+        return "low-texture" if self.lum_std < 6.0 else "noise"
+
+
+_DEFAULT_STYLE = _Style()
+
+
+def _pattern_field(style: _Style, size: int) -> np.ndarray:
+    """(size, size) float32 periodic pattern of ``style`` (rows v, columns u), grey levels."""
+    p = style.period
+    rng = np.random.default_rng([style.pattern_seed, 7])
+    v, u = np.mgrid[0:size, 0:size]
+    line = max(1, p // 12)                          # mortar / grout width, texels
+    if style.pattern == "bricks":
+        ph = p // 2
+        row = v // ph
+        shifted = u + (row % 2) * (p // 2)
+        mortar = ((v % ph) < line) | ((shifted % p) < line)
+        brick = rng.normal(0.0, 0.35, (size // ph, size // p + 1))
+        field = np.where(mortar, -1.0, brick[row, (shifted // p) % (size // p)])
+    elif style.pattern == "tiles":
+        grout = ((v % p) < line) | ((u % p) < line)
+        tile = rng.normal(0.0, 0.3, (size // p, size // p))
+        field = np.where(grout, -1.0, tile[v // p, u // p])
+    elif style.pattern == "stripes":
+        coord = u if rng.random() < 0.5 else v
+        field = np.where((coord % p) < p // 2, 0.5, -0.5)
+    else:
+        raise ValueError(f"unknown pattern {style.pattern!r}")
+    return (style.pattern_amp * field).astype(np.float32)
+
+
 @lru_cache(maxsize=16)
-def _texture(seed: int, index: int, size: int, rgb: tuple) -> _Texture:
+def _texture(seed: int, index: int, size: int, rgb: tuple, style: _Style = _DEFAULT_STYLE,
+             stream: int = -1) -> _Texture:
     """Texture of material ``index`` of the scenes of ``seed``. Cached: the street and static-box
-    materials of a seed are the same for every preset and size (at most 16, about 90 MB)."""
-    rng = np.random.default_rng([seed, 4, index])
-    return _Texture(rng, size, rgb, lum_std=_LUM_STD, chroma_std=_CHROMA_STD)
+    materials of a seed are the same for every legacy preset and size (at most 16, about 90 MB).
+    ``stream`` >= 0 separates the newer presets' noise from the legacy ones'."""
+    rng = np.random.default_rng([seed, 4, index] if stream < 0 else [seed, 4, index, stream])
+    if style == _DEFAULT_STYLE:
+        return _Texture(rng, size, rgb, lum_std=_LUM_STD, chroma_std=_CHROMA_STD)
+    pattern = _pattern_field(style, size) if style.pattern else None
+    return _Texture(rng, size, rgb, lum_std=style.lum_std, chroma_std=style.chroma_std,
+                    slope=style.slope, pattern=pattern)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -536,6 +672,100 @@ def _trace(boxes: Sequence[_Box], i: int, R_wc: np.ndarray, c: np.ndarray, grid:
 
 
 # ----------------------------------------------------------------------------------------------
+# Recipes of the newer presets: what a seed samples (camera path, movers, effects)
+
+_MIXED_KIND_P = {"person": 0.55, "car": 0.25, "animal": 0.2}
+_MIXED_BEHAVIOUR_P = {"along": 0.2, "crossing": 0.2, "oncoming": 0.12, "slow": 0.18,
+                      "enter-leave": 0.2, "follow": 0.1}
+_TROUSER_COLOURS = ((40, 45, 60), (60, 50, 40), (30, 30, 35), (80, 90, 110), (110, 95, 70))
+_SKIN_COLOURS = ((225, 190, 160), (190, 140, 110), (140, 95, 70), (90, 60, 45))
+_FUR_COLOURS = ((120, 90, 60), (60, 55, 50), (200, 190, 170), (150, 120, 80), (90, 80, 70))
+_GLASS_COLOUR = (45, 55, 65)
+
+
+def _draw_recipe(cfg: SceneConfig) -> dict:
+    """What a seed of a newer preset samples, from its own stream ``[seed, 6]``: camera path
+    name, movers as (kind, behaviour) pairs, and image effects (name -> parameters)."""
+    rng = np.random.default_rng([cfg.seed, 6, list(PRESETS).index(cfg.preset)])
+    if cfg.preset == "creep":
+        behaviour = str(rng.choice(["along", "crossing", "oncoming", "slow"]))
+        return {"camera": "creep", "movers": [("person", behaviour)], "effects": {}}
+    if cfg.preset == "pan":
+        kind = "car" if rng.random() < 0.3 else "person"
+        behaviour = str(rng.choice(["along", "crossing", "oncoming"]))
+        return {"camera": "pan", "movers": [(kind, behaviour)], "effects": {}}
+    names = list(CAMERA_PATHS)
+    camera = str(rng.choice(names)) if cfg.camera_path is None else cfg.camera_path
+    if cfg.camera_path is not None:
+        rng.random()      # keep the later draws of a seed the same whichever path is forced
+    count = int(rng.choice([1, 2, 3], p=[0.45, 0.35, 0.2]))
+    movers: list[tuple[str, str]] = []
+    if camera == "follow":
+        movers.append(("person", "follow"))
+    elif camera == "forward" and rng.random() < 0.5:
+        movers.append(("car", "follow"))
+    if count - len(movers) >= 2 and rng.random() < 0.4:
+        kind = "person" if rng.random() < 0.75 else "animal"
+        movers += [(kind, "cross-pair"), ("person", "cross-pair")]
+    kinds, kp = list(_MIXED_KIND_P), list(_MIXED_KIND_P.values())
+    behaviours = list(_MIXED_BEHAVIOUR_P)
+    bp = np.array(list(_MIXED_BEHAVIOUR_P.values()))
+    if camera in ("pan", "slow-pan", "creep"):      # nothing to keep pace with
+        bp[behaviours.index("follow")] = 0.0
+    bp = bp / bp.sum()
+    while len(movers) < count:
+        kind = str(rng.choice(kinds, p=kp))
+        if kind == "car" and any(k == "car" for k, _ in movers):
+            kind = "person"
+        movers.append((kind, str(rng.choice(behaviours, p=bp))))
+    effects: dict[str, dict] = {}
+    if rng.random() < 0.5:
+        effects["motion_blur"] = {"shutter": round(float(rng.uniform(0.3, 0.9)), 3)}
+    if rng.random() < 0.6:
+        effects["noise"] = {"sigma": round(float(rng.uniform(1.0, 4.0)), 3),
+                            "shot": round(float(rng.uniform(0.0, 0.05)), 4)}
+    if rng.random() < 0.4:
+        effects["exposure"] = {"amplitude": round(float(rng.uniform(0.1, 0.3)), 3),
+                               "period": round(float(rng.uniform(20.0, 60.0)), 2),
+                               "phase": round(float(rng.uniform(0.0, 2.0 * np.pi)), 4)}
+    if rng.random() < 0.5:
+        effects["jpeg"] = {"quality": int(rng.integers(35, 91))}
+    return {"camera": camera, "movers": movers, "effects": effects}
+
+
+def _draw_style(rng, role: str, size: int, index: int) -> _Style:
+    """A texture style with natural-image statistics for a material of the ``mixed`` preset:
+    1/f-like spectra (amplitude slope 0.85-1.15), contrast 12-40 grey levels, or a low-texture
+    surface (1.5-5), or a repetitive pattern (bricks, tiles, stripes)."""
+    p_low = {"sky": 0.6, "mover": 0.3, "static": 0.25}.get(role, 0.2)
+    p_pattern = {"sky": 0.0, "mover": 0.15, "static": 0.2}.get(role, 0.3)
+    u = rng.random()
+    if u < p_low:
+        return _Style(slope=float(rng.uniform(1.0, 1.3)), lum_std=float(rng.uniform(1.5, 5.0)),
+                      chroma_std=float(rng.uniform(0.5, 2.0)))
+    if u < p_low + p_pattern:
+        kinds = {"floor": ["tiles", "bricks"], "mover": ["stripes"],
+                 "static": ["stripes", "tiles"]}.get(role, ["bricks", "tiles", "stripes"])
+        periods = [q for q in (16, 32, 64) if q <= size // 4]
+        return _Style(slope=float(rng.uniform(0.85, 1.15)), lum_std=float(rng.uniform(5.0, 15.0)),
+                      chroma_std=float(rng.uniform(2.0, 6.0)), pattern=str(rng.choice(kinds)),
+                      period=int(rng.choice(periods)), pattern_amp=float(rng.uniform(12.0, 30.0)),
+                      pattern_seed=int(rng.integers(0, 2 ** 31)))
+    return _Style(slope=float(rng.uniform(0.85, 1.15)), lum_std=float(rng.uniform(12.0, 40.0)),
+                  chroma_std=float(rng.uniform(2.0, 6.0)))
+
+
+def _shake(rng, t, rate, periods=(3.0, 10.0), k: int = 3):
+    """Hand-held jitter: k sinusoids of periods in ``periods`` (frames), each of peak rate
+    ``rate / 2`` per frame."""
+    return sum(_waves(rng, t, rate / 2.0, periods) for _ in range(k))
+
+
+def _rotations(yaw, pitch, roll) -> np.ndarray:
+    return np.stack([_rot_y(a) @ _rot_x(p) @ _rot_z(r) for a, p, r in zip(yaw, pitch, roll)])
+
+
+# ----------------------------------------------------------------------------------------------
 # The scene
 
 
@@ -545,6 +775,12 @@ class _MoverProposal:
     half: np.ndarray      # (3,) half extents, metres
     xz: np.ndarray        # (N, 2) ground position per frame, metres
     heading: np.ndarray   # (N,) radians, direction (sin, cos) in (x, z)
+    behaviour: str = ""   # newer presets: a name in MOVER_BEHAVIOURS
+    anchor: int = 0       # frame at which the mover is placed in front of the camera
+    bearing: float = 0.0  # radians from the optical axis at the anchor frame
+    dist: float = 0.0     # metres from the camera at the anchor frame
+    rel: float = 0.0      # radians, heading relative to the camera yaw at the anchor frame
+    shape: dict = field(default_factory=dict)   # articulated-shape parameters (newer presets)
 
 
 class SyntheticScene:
@@ -558,21 +794,36 @@ class SyntheticScene:
         cfg = self.config
         n = cfg.n_frames
         fast = cfg.preset == "fast-rotation"
+        self._legacy = cfg.preset in LEGACY_PRESETS
+        self._stream = -1 if self._legacy else 100 + list(PRESETS).index(cfg.preset)
+        self.recipe: dict | None = None if self._legacy else _draw_recipe(cfg)
+        self._style_rng = np.random.default_rng([cfg.seed, 8])
 
         rng = np.random.default_rng([cfg.seed, 1])
-        hfov = np.radians(rng.uniform(55.0, 75.0) if cfg.hfov_deg is None else cfg.hfov_deg)
+        hfov_range = (40.0, 90.0) if cfg.preset == "mixed" else (55.0, 75.0)
+        hfov = np.radians(rng.uniform(*hfov_range) if cfg.hfov_deg is None else cfg.hfov_deg)
         f = 0.5 * cfg.width / np.tan(hfov / 2.0)
         pp = rng.uniform(-0.02, 0.02, 2)
         self.intrinsics = Intrinsics(float(f), float(f),
                                      float((cfg.width - 1) / 2.0 + pp[0] * cfg.width),
                                      float((cfg.height - 1) / 2.0 + pp[1] * cfg.height))
         self._hfov = float(hfov)
-        self._R_wc, self._centres, self._yaw = self._camera_path(rng, n, fast)
+        if self._legacy:
+            self._R_wc, self._centres, self._yaw = self._camera_path(rng, n, fast)
+        else:
+            self._R_wc, self._centres, self._yaw = self._camera_path_v2(rng, n,
+                                                                        self.recipe["camera"])
         self._poses = np.stack([make_pose(R, c) for R, c in zip(self._R_wc, self._centres)])
 
         rng = np.random.default_rng([cfg.seed, 2])
-        self._boxes: list[_Box] = [self._street(rng)]
-        self._boxes += self._static_boxes(rng)
+        if self._legacy:
+            self._boxes: list[_Box] = [self._street(rng)]
+            self._boxes += self._static_boxes(rng)
+        else:
+            room = self.recipe["camera"] == "creep"   # near end wall, boxes kept 3.5 m away
+            self._boxes = [self._street(rng, width_range=(8.0, 12.0) if room else (12.0, 16.0),
+                                        ahead=(10.0, 18.0) if room else (25.0, 35.0))]
+            self._boxes += self._static_boxes(rng, clearance=3.5 if room else _STATIC_CLEARANCE)
         self.n_static = len(self._boxes) - 1
 
         gw = _COVERAGE_GRID_WIDTH
@@ -580,10 +831,16 @@ class SyntheticScene:
         self._coverage_grid = _Grid.make(gw, gh, self.intrinsics.scaled(gw / cfg.width,
                                                                         gh / cfg.height))
         rng = np.random.default_rng([cfg.seed, 3, list(PRESETS).index(cfg.preset)])
-        self._boxes += self._movers(rng)
-        self.n_movers = len(self._boxes) - 1 - self.n_static
-        self.mover_kinds = tuple(b.kind for b in self._boxes if b.mover)
+        self._boxes += self._movers(rng) if self._legacy else self._movers_v2(rng)
+        first_box = {}
+        for b in self._boxes:
+            if b.mover and b.mover not in first_box:
+                first_box[b.mover] = b.kind
+        self.n_movers = len(first_box)
+        self.mover_kinds = tuple(first_box[k] for k in sorted(first_box))
         self._grid = _Grid.make(cfg.width, cfg.height, self.intrinsics)
+        if not self._legacy:
+            self._gain = self._exposure_gains()
 
     # -- public API ---------------------------------------------------------------------------
 
@@ -618,6 +875,15 @@ class SyntheticScene:
             out[i] = np.mean(box > n_static)
         return out
 
+    def geometry(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame i's exact depth (H, W) float32 metres and object ids (H, W) uint8 (0 static, k
+        mover k), ray-cast without texturing (fast; equal to :meth:`render`'s)."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"frame {i} out of range 0..{len(self) - 1}")
+        t, box, _ = _trace(self._boxes, i, self._R_wc[i], self._centres[i], self._grid)
+        mover_of_box = np.array([b.mover for b in self._boxes], dtype=np.uint8)
+        return t.astype(np.float32), mover_of_box[box]
+
     def render(self, i: int) -> RenderedFrame:
         """Frame i (0 <= i < len(scene)) with its ground truth."""
         if not 0 <= i < len(self):
@@ -629,16 +895,23 @@ class SyntheticScene:
         image = self._shade(i, t, face_id)
         mover_of_box = np.array([b.mover for b in self._boxes], dtype=np.uint8)
         object_id = mover_of_box[box]
+        clean = image
+        if self.recipe is not None and self.recipe["effects"] and self.config.effects:
+            image = self._apply_effects(i, image, t, box)
         return RenderedFrame(index=i, image=image, depth=t.astype(np.float32),
                              mask=object_id > 0, object_id=object_id, face_id=face_id,
-                             T_world_cam=self._poses[i].copy(), intrinsics=self.intrinsics)
+                             T_world_cam=self._poses[i].copy(), intrinsics=self.intrinsics,
+                             image_clean=clean)
 
     # -- shading ------------------------------------------------------------------------------
 
     @cached_property
     def _textures(self) -> list[_Texture]:
-        return [_texture(self.config.seed, m, size, rgb)
-                for m, (size, _, rgb) in enumerate(self._materials)]
+        if self._legacy:
+            return [_texture(self.config.seed, m, size, rgb)
+                    for m, (size, _, rgb, _) in enumerate(self._materials)]
+        return [_texture(self.config.seed, m, size, rgb, style, self._stream)
+                for m, (size, _, rgb, style) in enumerate(self._materials)]
 
     def _shade(self, i: int, t: np.ndarray, face_id: np.ndarray) -> np.ndarray:
         grid = self._grid
@@ -709,18 +982,23 @@ class SyntheticScene:
         R = np.stack([_rot_y(a) @ _rot_x(p) @ _rot_z(r) for a, p, r in zip(yaw, pitch, roll)])
         return R, np.stack([x, y, z], axis=1), yaw
 
-    def _material(self, size: int, density: float, rgb) -> int:
-        """A new material: texture size, texels per metre = density * fx, base colour RGB."""
-        self._materials.append((size, density * self.intrinsics.fx, tuple(int(v) for v in rgb)))
+    def _material(self, size: int, density: float, rgb, role: str = "wall") -> int:
+        """A new material: texture size, texels per metre = density * fx, base colour RGB; the
+        ``mixed`` preset draws its texture style for the ``role`` (wall, floor, sky, static,
+        mover) from its own stream."""
+        style = (_draw_style(self._style_rng, role, size, len(self._materials))
+                 if self.config.preset == "mixed" else _DEFAULT_STYLE)
+        self._materials.append((size, density * self.intrinsics.fx, tuple(int(v) for v in rgb),
+                                style))
         return len(self._materials) - 1
 
-    def _street(self, rng) -> _Box:
+    def _street(self, rng, width_range=(12.0, 16.0), ahead=(25.0, 35.0)) -> _Box:
         n = self.config.n_frames
         zc = self._centres[:, 2]
-        width = rng.uniform(12.0, 16.0)
+        width = rng.uniform(*width_range)
         height = rng.uniform(7.0, 9.0)
         z0 = zc.min() - rng.uniform(4.0, 7.0)
-        z1 = zc.max() + rng.uniform(25.0, 35.0)
+        z1 = zc.max() + rng.uniform(*ahead)
         self._street_extent = (width, height, z0, z1)
         self._materials: list[tuple] = []
         walls = rng.choice(len(_WORLD_COLOURS), 4, replace=False)
@@ -728,9 +1006,9 @@ class SyntheticScene:
         colours = [np.add(_WORLD_COLOURS[k], j) for k, j in zip(walls, jitter)]
         left = self._material(1024, _STREET_DENSITY, colours[0])
         right = self._material(1024, _STREET_DENSITY, colours[1])
-        floor = self._material(1024, _STREET_DENSITY, colours[2] * 0.85)
+        floor = self._material(1024, _STREET_DENSITY, colours[2] * 0.85, role="floor")
         ends = self._material(1024, _STREET_DENSITY, colours[3])
-        sky = self._material(1024, _SKY_DENSITY, _SKY_COLOUR)
+        sky = self._material(1024, _SKY_DENSITY, _SKY_COLOUR, role="sky")
         # Faces: -x left wall, +x right wall, -y sky (up), +y floor, -z back, +z front.
         brightness = np.array([0.92, 0.86, 1.0, 0.9, 0.9, 0.95]) + rng.uniform(-0.03, 0.03, 6)
         return _Box(half=np.array([width / 2.0, height / 2.0, (z1 - z0) / 2.0]),
@@ -744,11 +1022,11 @@ class SyntheticScene:
         # -x, +x, top (-y), bottom (+y), -z, +z: a fixed fake light from above and one side.
         return np.array([0.82, 0.95, 1.0, 0.6, 0.88, 0.76]) + rng.uniform(-0.04, 0.04, 6)
 
-    def _static_boxes(self, rng) -> list[_Box]:
+    def _static_boxes(self, rng, clearance: float = _STATIC_CLEARANCE) -> list[_Box]:
         n = self.config.n_frames
         width, height, z0, z1 = self._street_extent
         mats = [self._material(512, _STATIC_DENSITY,
-                               np.add(_STATIC_COLOURS[k], rng.uniform(-8, 8, 3)))
+                               np.add(_STATIC_COLOURS[k], rng.uniform(-8, 8, 3)), role="static")
                 for k in rng.choice(len(_STATIC_COLOURS), 3, replace=False)]
         cam_xz = self._centres[:, [0, 2]]
         placed: list[np.ndarray] = []
@@ -781,7 +1059,7 @@ class SyntheticScene:
             cam3 = np.column_stack([cam_xz[:, 0], np.full(n, centre[1]), cam_xz[:, 1]])
             dist = _point_box_distance(cam3, np.broadcast_to(R, (n, 3, 3)),
                                        np.broadcast_to(centre, (n, 3)), half)
-            if dist.min() < _STATIC_CLEARANCE:
+            if dist.min() < clearance:
                 continue
             if any(_footprints_overlap(corners[None], other[None])[0] for other in placed):
                 continue
@@ -895,8 +1173,9 @@ class SyntheticScene:
         pos = pos - pos[anchor] + xz_anchor
         return _MoverProposal(kind=kind, half=size / 2.0, xz=pos, heading=heading[::sub].copy())
 
-    def _check(self, prop: _MoverProposal, accepted, covs) -> np.ndarray | None:
-        """The proposal's per-frame coverage on the coarse grid when it is admissible, else None."""
+    def _check(self, prop: _MoverProposal, accepted, covs, rule=None) -> np.ndarray | None:
+        """The proposal's per-frame coverage on the coarse grid when it is admissible, else None.
+        ``rule(cov, total)`` replaces the legacy presets' coverage rule (newer presets)."""
         n = self.config.n_frames
         width, height, z0, z1 = self._street_extent
         half_xz = prop.half[[0, 2]]
@@ -929,7 +1208,11 @@ class SyntheticScene:
             cov[i] = np.mean(hit == len(boxes) - 1)
             if count == (n + 3) // 4 - 1 or count == n - 1:
                 done = cov[~np.isnan(cov)]
-                if not self._coverage_ok(preset, done, covs, ~np.isnan(cov)):
+                sel = ~np.isnan(cov)
+                if rule is None:
+                    if not self._coverage_ok(preset, done, covs, sel):
+                        return None
+                elif not rule(done, done + sum(o[sel] for o in covs)):
                     return None
         return cov
 
@@ -951,12 +1234,442 @@ class SyntheticScene:
         n = self.config.n_frames
         palette = _CAR_COLOURS if prop.kind == "car" else _PERSON_COLOURS
         rgb = np.add(palette[colour], rng.uniform(-10, 10, 3))
-        mat = self._material(1024, _MOVER_DENSITY, rgb)
+        mat = self._material(1024, _MOVER_DENSITY, rgb, role="mover")
         R = np.stack([_rot_y(h) for h in prop.heading])
         centre = np.column_stack([prop.xz[:, 0], np.full(n, -prop.half[1]), prop.xz[:, 1]])
         return _Box(half=prop.half, R=R, centre=centre, materials=(mat,) * 6,
                     offsets=rng.uniform(0.0, 1024.0, (6, 2)),
                     brightness=self._box_brightness(rng), mover=k, kind=prop.kind)
+
+
+    # -- newer presets: camera paths ----------------------------------------------------------
+
+    def _camera_path_v2(self, rng, n: int, kind: str):
+        """Rotations (N, 3, 3), centres (N, 3) and yaw (N,) of a camera path in CAMERA_PATHS."""
+        if kind == "street-walk":
+            return self._camera_path(rng, n, False)
+        if kind == "fast-rotation":
+            return self._camera_path(rng, n, True)
+        t = np.arange(n, dtype=np.float64)
+        deg = np.pi / 180.0
+        x0 = rng.uniform(-1.0, 1.0)
+        y0 = -rng.uniform(1.2, 1.6) if kind == "forward" else -rng.uniform(1.4, 1.8)
+        yaw0 = rng.uniform(-10.0, 10.0) * deg
+        pitch0 = rng.uniform(-4.0, 2.0) * deg
+        roll0 = rng.uniform(-1.5, 1.5) * deg
+        zeros = np.zeros(n)
+        if kind in ("pan", "slow-pan"):
+            rate = (rng.uniform(0.5, 2.0) if kind == "pan" else rng.uniform(0.2, 0.6)) * deg
+            omega = 2.0 * np.pi / rng.uniform(30.0, 90.0)
+            phase = rng.uniform(0.0, 2.0 * np.pi)
+            sweep = rate * (t + 0.25 / omega * (np.cos(phase) - np.cos(omega * t + phase)))
+            yaw = yaw0 + rng.choice([-1.0, 1.0]) * sweep
+            pitch = pitch0 + _waves(rng, t, rng.uniform(0.05, 0.2) * deg, (30.0, 90.0))
+            roll = roll0 + _waves(rng, t, rng.uniform(0.0, 0.03) * deg, (30.0, 90.0))
+            if kind == "pan":     # tripod: the centre never moves
+                centres = np.tile([x0, y0, 0.0], (n, 1))
+            else:
+                step = rng.uniform(0.003, 0.015)
+                direction = yaw0 + rng.choice([-1.0, 1.0]) * rng.uniform(60.0, 120.0) * deg
+                centres = np.column_stack([x0 + step * t * np.sin(direction),
+                                           y0 + _waves(rng, t, 0.0005, (20.0, 60.0)),
+                                           step * t * np.cos(direction)])
+            return _rotations(yaw, pitch, roll), centres, yaw
+        if kind == "creep":
+            speed = rng.uniform(0.008, 0.012)
+            psi = yaw0 + rng.uniform(-90.0, 90.0) * deg          # direction of the creep
+            rise = rng.uniform(-0.2, 0.2)
+            direction = np.array([np.sin(psi), rise, np.cos(psi)]) / np.sqrt(1.0 + rise * rise)
+            centres = (np.array([x0, y0, 0.0]) + speed * t[:, None] * direction
+                       + np.column_stack([_shake(rng, t, 0.0006, (6.0, 20.0)) for _ in range(3)]))
+            yaw = (yaw0 + _waves(rng, t, rng.uniform(0.02, 0.1) * deg, (40.0, 120.0))
+                   + _shake(rng, t, rng.uniform(0.03, 0.1) * deg))
+            pitch = pitch0 + _shake(rng, t, rng.uniform(0.03, 0.08) * deg)
+            roll = roll0 + _shake(rng, t, rng.uniform(0.02, 0.06) * deg)
+            return _rotations(yaw, pitch, roll), centres, yaw
+        # Walking or driving along the street: handheld, follow, forward.
+        if kind == "handheld":
+            speed, turn, shake = rng.uniform(0.01, 0.04), rng.uniform(0.1, 0.3), rng.uniform(0.15, 0.5)
+            trans_shake, bob = rng.uniform(0.002, 0.005), 0.0
+        elif kind == "follow":
+            speed, turn, shake = rng.uniform(0.025, 0.05), rng.uniform(0.1, 0.3), rng.uniform(0.08, 0.25)
+            trans_shake, bob = 0.001, rng.uniform(0.003, 0.006)
+        elif kind == "forward":
+            speed, turn, shake = rng.uniform(0.2, 0.45), rng.uniform(0.1, 0.4), rng.uniform(0.02, 0.06)
+            trans_shake, bob = 0.0005, 0.0
+        else:
+            raise ValueError(f"unknown camera path {kind!r}")
+        heading = yaw0 + _waves(rng, t, turn * deg, (40.0, 120.0))
+        step = speed * (1.0 + 0.15 * np.sin(2 * np.pi * t / rng.uniform(20, 60) + rng.uniform(0, 6.3)))
+        vx = step * np.sin(heading)
+        vz = step * np.cos(heading)
+        x = x0 + np.concatenate([[0.0], np.cumsum(vx[1:])]) + _shake(rng, t, trans_shake)
+        z = np.concatenate([[0.0], np.cumsum(vz[1:])]) + _shake(rng, t, trans_shake)
+        y = y0 + _waves(rng, t, bob, (12.0, 20.0)) + _shake(rng, t, trans_shake)
+        yaw = heading + _shake(rng, t, shake * deg)
+        pitch = pitch0 + _shake(rng, t, 0.7 * shake * deg)
+        roll = roll0 + _shake(rng, t, 0.5 * shake * deg)
+        del zeros
+        return _rotations(yaw, pitch, roll), np.column_stack([x, y, z]), yaw
+
+    # -- newer presets: movers ----------------------------------------------------------------
+
+    def _movers_v2(self, rng) -> list[_Box]:
+        """Movers of the recipe, each placed by its behaviour's rule; a mover that cannot be
+        placed after the first is left out (``recipe['movers']`` then lists what was placed)."""
+        wanted = list(self.recipe["movers"])
+        accepted: list[_MoverProposal] = []
+        covs: list[np.ndarray] = []
+        placed: list[tuple[str, str]] = []
+        for m, (kind, behaviour) in enumerate(wanted):
+            ref = None
+            if behaviour == "cross-pair":
+                refs = [a for a, b in zip(accepted, placed) if b[1] == "cross-pair"]
+                ref = refs[0] if refs else None
+            prop = self._place(rng, kind, behaviour, ref, accepted, covs)
+            if prop is None and m == 0:
+                kind, behaviour = "person", "slow"     # the easiest mover to place
+                prop = self._place(rng, kind, behaviour, None, accepted, covs)
+            if prop is None:
+                if m == 0:
+                    cfg = self.config
+                    raise MonaVoError(
+                        f"synthetic scene: could not place a mover of preset {cfg.preset!r} for "
+                        f"seed {cfg.seed} and {cfg.n_frames} frames in {_MAX_TRIES} tries; "
+                        f"use another seed or fewer frames")
+                log.debug("mover %d (%s, %s) could not be placed; left out", m + 1, kind,
+                          behaviour)
+                continue
+            accepted.append(prop[0])
+            covs.append(prop[1])
+            placed.append((kind, behaviour))
+        # A crossing pair whose second mover was left out is one crossing mover.
+        if sum(b == "cross-pair" for _, b in placed) == 1:
+            placed = [(k, "crossing" if b == "cross-pair" else b) for k, b in placed]
+        self.recipe["movers"] = placed
+        colours = rng.permutation(len(_PERSON_COLOURS))
+        boxes = []
+        for k, prop in enumerate(accepted):
+            boxes += self._mover_parts(rng, prop, k + 1, int(colours[k % len(colours)]))
+        return boxes
+
+    def _place(self, rng, kind, behaviour, ref, accepted, covs):
+        """(proposal, coarse coverage) of the first admissible proposal, or None."""
+        rule = functools.partial(self._rule_v2, behaviour)
+        for attempt in range(_MAX_TRIES):
+            prop = self._propose_v2(rng, kind, behaviour, ref)
+            cov = self._check(prop, accepted, covs, rule=rule)
+            if cov is None:
+                continue
+            if ref is not None and not self._crosses(prop, ref, cov, covs[accepted.index(ref)]):
+                continue
+            log.debug("mover %s/%s accepted after %d proposals", kind, behaviour, attempt + 1)
+            return prop, cov
+        return None
+
+    def _rule_v2(self, behaviour: str, cov: np.ndarray, total: np.ndarray) -> bool:
+        """Coverage rule of one mover of a newer preset on the coarse grid (frames in order)."""
+        if np.any(total > _MAX_COVERAGE) or cov.max() > 0.4:
+            return False
+        visible = cov > _VISIBLE_COVERAGE
+        if behaviour == "enter-leave":
+            return bool(0.2 <= visible.mean() <= 0.85 and not (visible[0] and visible[-1]))
+        need = {"creep": 0.7, "pan": 0.5}.get(self.config.preset, 0.6)
+        return bool(visible.mean() >= (0.5 if behaviour == "cross-pair" else need))
+
+    def _crosses(self, a: _MoverProposal, b: _MoverProposal, cov_a, cov_b) -> bool:
+        """Whether the image x of mover a's centre passes mover b's while both are visible."""
+        xs = []
+        for prop in (a, b):
+            X = np.column_stack([prop.xz[:, 0], np.full(len(prop.xz), -prop.half[1]),
+                                 prop.xz[:, 1]])
+            pc = np.einsum("nji,nj->ni", self._R_wc, X - self._centres)
+            xs.append((pc[:, 0] / np.maximum(pc[:, 2], 1e-6), pc[:, 2] > 0.3))
+        ok = xs[0][1] & xs[1][1] & (cov_a > _VISIBLE_COVERAGE) & (cov_b > _VISIBLE_COVERAGE)
+        if ok.sum() < 2:
+            return False
+        d = (xs[0][0] - xs[1][0])[ok]
+        return bool(d.min() < 0.0 < d.max())
+
+    @staticmethod
+    def _shape(rng, kind: str) -> tuple[np.ndarray, dict]:
+        """Bounding size (3,) metres (x across, y height, z along the heading) and the shape
+        parameters of an articulated person, an animal or a car."""
+        deg = np.pi / 180.0
+        if kind == "person":
+            h = rng.uniform(1.55, 1.9)
+            amp = rng.uniform(18.0, 28.0) * deg
+            half_z = max(0.47 * h * np.sin(amp) + 0.045 * h, 0.36 * h * np.sin(0.7 * amp) + 0.03 * h,
+                         0.07 * h)
+            return (np.array([0.34 * h, h, 2.0 * half_z]),
+                    {"height": h, "amp": amp, "stride": 1.3 * h / 1.75, "bulk": rng.uniform(0.9, 1.1)})
+        if kind == "animal":
+            length = rng.uniform(0.6, 1.0)
+            height = rng.uniform(0.45, 0.75)
+            width = rng.uniform(0.22, 0.35)
+            amp = rng.uniform(15.0, 30.0) * deg
+            return (np.array([width, height + 0.12, 1.5 * length]),
+                    {"length": length, "height": height, "width": width, "amp": amp,
+                     "stride": 0.8 * length})
+        size = rng.uniform([1.7, 1.4, 3.9], [1.95, 1.6, 4.7])
+        return size, {"cabin_offset": rng.uniform(-0.12, 0.0), "cabin_length": rng.uniform(0.45, 0.6)}
+
+    def _propose_v2(self, rng, kind: str, behaviour: str, ref=None) -> _MoverProposal:
+        """A mover trajectory of the given kind and behaviour (MOVER_BEHAVIOURS), anchored in
+        front of the camera; the second of a crossing pair starts from ``ref``'s anchor."""
+        n = self.config.n_frames
+        deg = np.pi / 180.0
+        size, shape = self._shape(rng, kind)
+        dist = {"person": (2.0, 9.0), "animal": (2.0, 6.0), "car": (5.0, 14.0)}[kind]
+        if self.config.preset == "creep":
+            dist = (2.5, 8.0)
+        cam_speed = np.linalg.norm(np.diff(self._centres[:, [0, 2]], axis=0), axis=1).mean()
+        spread = 0.15 if behaviour == "follow" else 0.4
+        bearing = rng.uniform(-spread, spread) * self._hfov
+        if behaviour == "enter-leave":
+            anchor = int(round((rng.uniform(0.0, 0.25) if rng.random() < 0.5
+                                else rng.uniform(0.75, 1.0)) * (n - 1)))
+        else:
+            anchor = int(round(rng.uniform(0.3, 0.7) * (n - 1)))
+        d = rng.uniform(*dist)
+        if ref is not None:
+            anchor, bearing = ref.anchor, ref.bearing
+            d = max(ref.dist + rng.choice([-1.0, 1.0]) * rng.uniform(1.5, 4.0), dist[0])
+        cam_yaw = self._yaw[anchor]
+        xz_anchor = self._centres[anchor, [0, 2]] + d * np.array(
+            [np.sin(cam_yaw + bearing), np.cos(cam_yaw + bearing)])
+        sub = 8
+        tf = np.arange((n - 1) * sub + 1, dtype=np.float64) / sub
+        common = dict(kind=kind, half=size / 2.0, behaviour=behaviour, anchor=anchor,
+                      bearing=float(bearing), dist=float(d), shape=shape)
+        if behaviour == "follow":
+            x = xz_anchor[0] + _waves(rng, tf, rng.uniform(0.0, 0.02), (30.0, 90.0))
+            z = (np.interp(tf, np.arange(n), self._centres[:, 2]) - self._centres[anchor, 2]
+                 + xz_anchor[1] + _waves(rng, tf, rng.uniform(0.0, 0.03), (30.0, 90.0)))
+            pos = np.stack([x, z], axis=1)
+            vel = np.gradient(pos, tf, axis=0)
+            heading = np.arctan2(vel[:, 0], vel[:, 1])
+            pos = pos - pos[anchor * sub] + xz_anchor
+            return _MoverProposal(xz=pos[::sub].copy(), heading=heading[::sub].copy(), rel=0.0,
+                                  **common)
+        speeds = {  # m/frame by behaviour: person, animal, car
+            "along": ((0.025, 0.06), (0.03, 0.08), None),
+            "crossing": ((0.025, 0.05), (0.03, 0.07), (0.04, 0.12)),
+            "cross-pair": ((0.025, 0.05), (0.03, 0.07), (0.04, 0.12)),
+            "enter-leave": ((0.04, 0.07), (0.05, 0.1), (0.08, 0.2)),
+            "oncoming": ((0.025, 0.05), (0.03, 0.07), (0.05, 0.15)),
+            "slow": ((0.003, 0.012), (0.004, 0.015), (0.01, 0.03)),
+        }[behaviour][("person", "animal", "car").index(kind)]
+        if speeds is None:    # a car along the street at about the camera's pace
+            speed = max(cam_speed * rng.uniform(0.7, 1.3), 0.04)
+        else:
+            speed = rng.uniform(*speeds)
+        if behaviour == "along":
+            rel = rng.uniform(-25.0, 25.0) * deg
+        elif behaviour in ("crossing", "enter-leave"):
+            rel = rng.choice([-1.0, 1.0]) * rng.uniform(60.0, 120.0) * deg
+        elif behaviour == "cross-pair":
+            side = 1.0 if ref is None else -np.sign(ref.rel)
+            rel = side * rng.uniform(75.0, 105.0) * deg
+        elif behaviour == "oncoming":
+            rel = np.pi + rng.uniform(-20.0, 20.0) * deg
+        else:
+            rel = rng.uniform(-np.pi, np.pi)
+        turn = rng.uniform(-1.0, 1.0) * deg if kind == "car" else rng.uniform(-2.0, 2.0) * deg
+        heading = cam_yaw + rel + turn * (tf - anchor)
+        heading = heading + _waves(rng, tf, rng.uniform(0.0, 1.0) * deg, (20.0, 60.0))
+        spd = speed * (1.0 + 0.15 * np.sin(2 * np.pi * tf / rng.uniform(20, 60)
+                                          + rng.uniform(0, 2 * np.pi)))
+        vel = spd[:, None] * np.stack([np.sin(heading), np.cos(heading)], axis=1)
+        pos = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * (vel[1:] + vel[:-1]) / sub, axis=0)])
+        pos = pos[::sub]
+        pos = pos - pos[anchor] + xz_anchor
+        return _MoverProposal(xz=pos, heading=heading[::sub].copy(), rel=float(rel), **common)
+
+    def _mover_parts(self, rng, prop: _MoverProposal, k: int, colour: int) -> list[_Box]:
+        """The boxes of mover k: an articulated person (legs and arms swinging with the distance
+        walked), an animal (four swinging legs) or a car (body and cabin), all labelled k."""
+        n = self.config.n_frames
+        sh = prop.shape
+        Rh = np.stack([_rot_y(h) for h in prop.heading])            # (N, 3, 3) mover frame
+        ground = np.column_stack([prop.xz[:, 0], np.zeros(n), prop.xz[:, 1]])
+        walked = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(prop.xz, axis=0),
+                                                                 axis=1))])
+        parts: list[tuple] = []   # (half (3,), pivot (3,), offset (3,), swing (N,), material)
+
+        def mat(palette, jitter=10.0, size=256):
+            rgb = np.add(palette[int(rng.integers(len(palette)))], rng.uniform(-jitter, jitter, 3))
+            return self._material(size, _MOVER_DENSITY, rgb, role="mover")
+
+        if prop.kind == "person":
+            h, amp = sh["height"], sh["amp"]
+            speed = walked[-1] / max(n - 1, 1)
+            amp = amp * float(np.clip(speed / 0.035, 0.25, 1.0))
+            phase = 2.0 * np.pi * walked / sh["stride"] + rng.uniform(0, 2 * np.pi)
+            if prop.behaviour == "slow":   # shifting, gesturing: limbs move with time as well
+                phase = phase + 2.0 * np.pi * np.arange(n) / rng.uniform(20.0, 40.0)
+            swing = amp * np.sin(phase)
+            top = mat(_PERSON_COLOURS)
+            legs = mat(_TROUSER_COLOURS)
+            skin = mat(_SKIN_COLOURS)
+            b = sh["bulk"]
+            leg = 0.47 * h
+            for side in (-1.0, 1.0):
+                parts.append((np.array([0.04 * h * b, leg / 2.0, 0.045 * h]),
+                              np.array([side * 0.055 * h * b, -leg, 0.0]),
+                              np.array([0.0, leg / 2.0, 0.0]), side * swing, legs))
+                parts.append((np.array([0.025 * h, 0.18 * h, 0.028 * h]),
+                              np.array([side * 0.14 * h * b, -0.81 * h, 0.0]),
+                              np.array([0.0, 0.18 * h, 0.0]), -0.7 * side * swing, top))
+            parts.append((np.array([0.11 * h * b, 0.18 * h, 0.06 * h * b]), np.array([0.0, -0.65 * h, 0.0]),
+                          np.zeros(3), np.zeros(n), top))
+            parts.append((np.array([0.055 * h, 0.085 * h, 0.06 * h]), np.array([0.0, -0.915 * h, 0.0]),
+                          np.zeros(3), np.zeros(n), skin))
+        elif prop.kind == "animal":
+            length, height, width, amp = sh["length"], sh["height"], sh["width"], sh["amp"]
+            phase = 2.0 * np.pi * walked / sh["stride"] + rng.uniform(0, 2 * np.pi)
+            if prop.behaviour == "slow":
+                phase = phase + 2.0 * np.pi * np.arange(n) / rng.uniform(15.0, 30.0)
+            swing = amp * np.sin(phase)
+            fur = mat(_FUR_COLOURS, jitter=15.0)
+            leg = 0.55 * height
+            lw = 0.06 + 0.1 * width
+            for sx in (-1.0, 1.0):
+                for sz in (-1.0, 1.0):
+                    parts.append((np.array([lw / 2.0, leg / 2.0, lw / 2.0]),
+                                  np.array([sx * (width / 2.0 - lw / 2.0), -leg,
+                                            sz * (length / 2.0 - lw / 2.0 - 0.03)]),
+                                  np.array([0.0, leg / 2.0, 0.0]), sx * sz * swing, fur))
+            parts.append((np.array([width / 2.0, 0.225 * height, length / 2.0]),
+                          np.array([0.0, -0.775 * height, 0.0]), np.zeros(3), np.zeros(n), fur))
+            head = 0.13 * length + 0.04
+            parts.append((np.array([0.4 * width, head * 0.8, head]),
+                          np.array([0.0, -(height + 0.12 - head * 0.8), length / 2.0 + 0.25 * length - head]),
+                          np.zeros(3), np.zeros(n), fur))
+        else:
+            w, hgt, length = prop.half * 2.0
+            body_h = 0.55 * hgt
+            paint = self._material(1024, _MOVER_DENSITY,
+                                   np.add(_CAR_COLOURS[colour % len(_CAR_COLOURS)],
+                                          rng.uniform(-10, 10, 3)), role="mover")
+            glass = self._material(256, _MOVER_DENSITY, _GLASS_COLOUR, role="mover")
+            parts.append((np.array([w / 2.0, body_h / 2.0, length / 2.0]),
+                          np.array([0.0, -body_h / 2.0, 0.0]), np.zeros(3), np.zeros(n), paint))
+            cab_l = sh["cabin_length"] * length
+            parts.append((np.array([0.44 * w, (hgt - body_h) / 2.0, cab_l / 2.0]),
+                          np.array([0.0, -(body_h + (hgt - body_h) / 2.0),
+                                    sh["cabin_offset"] * length]),
+                          np.zeros(3), np.zeros(n), glass))
+        boxes = []
+        for half, pivot, offset, swing, material in parts:
+            Rs = np.stack([_rot_x(a) for a in swing])                     # (N, 3, 3)
+            R = Rh @ Rs
+            local = pivot[None, :] + np.einsum("nij,j->ni", Rs, offset)
+            centre = ground + np.einsum("nij,nj->ni", Rh, local)
+            boxes.append(_Box(half=half, R=R, centre=centre, materials=(material,) * 6,
+                              offsets=rng.uniform(0.0, 256.0, (6, 2)),
+                              brightness=self._box_brightness(rng), mover=k, kind=prop.kind))
+        return boxes
+
+    # -- newer presets: image effects ---------------------------------------------------------
+
+    def _exposure_gains(self) -> np.ndarray:
+        """(N,) float64 exposure gain per frame (1 without the exposure effect)."""
+        n = self.config.n_frames
+        e = self.recipe["effects"].get("exposure")
+        if e is None:
+            return np.ones(n)
+        t = np.arange(n, dtype=np.float64)
+        return np.exp(e["amplitude"] * np.sin(2.0 * np.pi * t / e["period"] + e["phase"]))
+
+    def _flow(self, i: int, t: np.ndarray, box: np.ndarray) -> np.ndarray:
+        """(H, W, 2) float32 exact image motion, pixels per frame, of the surface seen at each
+        pixel of frame i (each box moved rigidly from frame i to i + 1; the last frame uses the
+        step from the one before)."""
+        n = self.config.n_frames
+        j = i + 1 if i + 1 < n else i - 1
+        sign = 1.0 if j > i else -1.0
+        grid, intr = self._grid, self._grid.intr
+        H, W = t.shape
+        ray = np.empty((H, W, 3))
+        ray[..., 0] = grid.a[None, :]
+        ray[..., 1] = grid.b[:, None]
+        ray[..., 2] = 1.0
+        X = ray * t[..., None]
+        Ri, ci, Rj, cj = self._R_wc[i], self._centres[i], self._R_wc[j], self._centres[j]
+        flow = np.zeros((H, W, 2), dtype=np.float32)
+        for b in np.unique(box):
+            bx = self._boxes[b]
+            Rrel = bx.R[j] @ bx.R[i].T
+            A = Rj.T @ Rrel @ Ri
+            off = Rj.T @ (Rrel @ (ci - bx.centre[i]) + bx.centre[j] - cj)
+            sel = box == b
+            Xp = X[sel] @ A.T + off
+            z = np.maximum(Xp[:, 2], 1e-3)
+            u = intr.fx * Xp[:, 0] / z + intr.cx
+            v = intr.fy * Xp[:, 1] / z + intr.cy
+            ys, xs = np.nonzero(sel)
+            flow[sel] = (sign * np.column_stack([u - xs, v - ys])).astype(np.float32)
+        return flow
+
+    def _apply_effects(self, i: int, image: np.ndarray, t: np.ndarray, box: np.ndarray):
+        """Frame i's image with the recipe's effects, in order: motion blur (the image averaged
+        along each pixel's exact motion over the shutter), exposure gain, sensor noise (Gaussian
+        plus shot noise), JPEG compression. Depth, masks and ids are untouched."""
+        fx = self.recipe["effects"]
+        img = image.astype(np.float32)
+        if "motion_blur" in fx:
+            d = self._flow(i, t, box) * np.float32(fx["motion_blur"]["shutter"])
+            length = np.linalg.norm(d, axis=2)
+            taps = int(np.clip(np.ceil(np.percentile(length, 99)) + 1, 2, 12))
+            H, W = t.shape
+            xs = np.arange(W, dtype=np.float32)[None, :]
+            ys = np.arange(H, dtype=np.float32)[:, None]
+            acc = np.zeros_like(img)
+            for tau in np.linspace(-0.5, 0.5, taps, dtype=np.float32):
+                acc += cv2.remap(img, xs + tau * d[..., 0], ys + tau * d[..., 1],
+                                 cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            img = acc / np.float32(taps)
+        if "exposure" in fx:
+            img = img * np.float32(self._gain[i])
+        if "noise" in fx:
+            rng = np.random.default_rng([self.config.seed, 5, i])
+            var = fx["noise"]["sigma"] ** 2 + fx["noise"]["shot"] * np.maximum(img, 0.0)
+            img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.sqrt(var)
+        out = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        if "jpeg" in fx:
+            ok, buf = cv2.imencode(".jpg", cv2.cvtColor(out, cv2.COLOR_RGB2BGR),
+                                   [cv2.IMWRITE_JPEG_QUALITY, int(fx["jpeg"]["quality"])])
+            if not ok:
+                raise MonaVoError("synthetic scene: cv2.imencode failed on a JPEG effect")
+            out = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        return out
+
+    # -- description --------------------------------------------------------------------------
+
+    def describe(self) -> dict:
+        """What this scene is, for per-seed tables: preset, seed, field of view (deg), camera
+        path, movers (kind:behaviour), effects, texture styles, mask coverage (mean and max over
+        frames, fraction of frames with a mover), path length (m) and median rotation per frame
+        (deg). The coverage is ray-cast at full size (no texturing)."""
+        cov = self.coverage()
+        poses = self._poses
+        rot = [rotation_angle_deg(relative_pose(a, b)[:3, :3]) for a, b in zip(poses[:-1], poses[1:])]
+        styles: dict[str, int] = {}
+        for *_, style in self._materials:
+            styles[style.label] = styles.get(style.label, 0) + 1
+        recipe = self.recipe or {}
+        camera = recipe.get("camera", {"fast-rotation": "fast-rotation"}.get(
+            self.config.preset, "street-walk"))
+        movers = (recipe["movers"] if recipe else
+                  [(k, "legacy") for k in self.mover_kinds])
+        return {"preset": self.config.preset, "seed": self.config.seed,
+                "hfov_deg": float(np.degrees(self._hfov)), "camera": camera,
+                "movers": [f"{k}:{b}" for k, b in movers],
+                "effects": dict(recipe.get("effects", {})), "textures": styles,
+                "coverage_mean": float(cov.mean()), "coverage_max": float(cov.max()),
+                "frames_with_mover": float(np.mean(cov > 0)),
+                "path_m": self.path_length(), "rot_deg_per_frame": float(np.median(rot))}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -976,8 +1689,9 @@ def write_sintel(scene: SyntheticScene, root, seq: str = "synthetic",
                  passes: Sequence[str] = ("clean", "final")) -> Path:
     """Write ``scene`` in MPI Sintel's layout under ``root`` and return ``root``.
 
-    ``root/training/<pass>/<seq>/frame_%04d.png`` (numbered from 1; every pass gets the same
-    image: there is no blur or fog), ``root/training/camdata_left/<seq>/frame_%04d.cam``,
+    ``root/training/<pass>/<seq>/frame_%04d.png`` (numbered from 1; the ``clean`` pass gets the
+    image before the image effects of the ``mixed`` preset, every other pass the final image;
+    without effects they are the same), ``root/training/camdata_left/<seq>/frame_%04d.cam``,
     ``root/training/depth/<seq>/frame_%04d.dpt`` and ``root/training/moving_masks/<seq>/
     frame_%04d.png`` (8-bit, 255 on movers, 0 elsewhere). Each file is written atomically.
     """
@@ -986,7 +1700,8 @@ def write_sintel(scene: SyntheticScene, root, seq: str = "synthetic",
     for frame in scene:
         name = f"frame_{frame.index + 1:04d}"
         for p in passes:
-            _write_png(train / p / seq / f"{name}.png", frame.image)
+            clean = p == "clean" and frame.image_clean is not None
+            _write_png(train / p / seq / f"{name}.png", frame.image_clean if clean else frame.image)
         write_cam(train / "camdata_left" / seq / f"{name}.cam", frame.intrinsics, frame.T_world_cam)
         write_dpt(train / "depth" / seq / f"{name}.dpt", frame.depth)
         _write_png(train / "moving_masks" / seq / f"{name}.png",
