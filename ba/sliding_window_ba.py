@@ -19,10 +19,6 @@ whole (its other observations are not added either). :class:`BAResult` counts bo
 """
 from __future__ import annotations
 
-import contextlib
-import functools
-import os
-import sys
 import time
 from dataclasses import dataclass, field
 
@@ -30,28 +26,36 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import K, L, X
 
+from ba.factors import (add_distance_prior, add_focal_variable, add_projection_factors,
+                        distance_error, focal_prior_error, levenberg_marquardt, robust_pixel_noise)
+from mona_vo.config import check_fields, setting
 from mona_vo.conventions import Intrinsics, pixels_in_mask, reproject
+
+__all__ = ["BAConfig", "BAProblem", "BAResult", "sliding_window_ba", "observations_in_masks",
+           "reprojection_residuals", "focal_prior_error", "distance_error"]
 
 
 @dataclass(frozen=True)
 class BAConfig:
-    pixel_sigma: float = 1.0         # px; standard deviation of a tracked point's position
-    robust_kernel: str = "huber"     # huber | cauchy | none; on the whitened pixel residual
-    robust_k: float = 1.5            # kernel width in sigmas (Huber's k, Cauchy's c)
-    max_iterations: int = 8          # Levenberg-Marquardt iterations per window solve
-    outlier_px: float = 3.0          # after solving, residuals above this are reported outliers
-    gauge_sigma: float = 1e-6        # rad and m; prior sigma that holds fixed keyframes in place
-    min_observations: int = 2        # landmarks with fewer usable observations are left out
-    focal_prior_ratio: float = 0.3   # with refine_focal: 1-sigma prior on f as a fraction of f
-    resolve_without_outliers: bool = True  # second solve without observations > outlier_px
+    pixel_sigma: float = setting(1.0, gt=0)  # px; standard deviation of a tracked point's position
+    robust_kernel: str = setting("huber", choices=("huber", "cauchy", "none"))  # on the whitened
+                                     # pixel residual
+    robust_k: float = setting(1.5, gt=0)  # kernel width in sigmas (Huber's k, Cauchy's c)
+    max_iterations: int = setting(8, ge=1)  # Levenberg-Marquardt iterations per window solve
+    outlier_px: float = setting(3.0, gt=0)  # after solving, residuals above this are reported
+                                     # outliers, px
+    gauge_sigma: float = setting(1e-6, gt=0)  # rad and m; prior sigma that holds fixed keyframes
+                                     # in place
+    min_observations: int = setting(2, ge=2)  # landmarks with fewer usable observations are
+                                     # left out
+    focal_prior_ratio: float = setting(0.3, gt=0)  # with refine_focal: 1-sigma prior on f as a
+                                     # fraction of f
+    resolve_without_outliers: bool = setting(True)  # second solve without observations > outlier_px
+    global_max_iterations: int = setting(30, ge=1)  # Levenberg-Marquardt iterations per
+                                     # global-refinement solve
 
     def validate(self) -> None:
-        from mona_vo.errors import ConfigError
-
-        if self.robust_kernel not in ("huber", "cauchy", "none"):
-            raise ConfigError(f"ba.robust_kernel must be huber, cauchy or none, not '{self.robust_kernel}'")
-        if self.pixel_sigma <= 0 or self.robust_k <= 0:
-            raise ConfigError("ba.pixel_sigma and ba.robust_k must be positive")
+        check_fields(self, "vo.ba.")
 
 
 @dataclass
@@ -115,53 +119,8 @@ def observations_in_masks(obs_kf: np.ndarray, obs_uv: np.ndarray,
     return inside
 
 
-def focal_prior_error(focal0: float, this: gtsam.CustomFactor, values: gtsam.Values,
-                      jacobians: list[np.ndarray] | None) -> np.ndarray:
-    """Residual f - focal0 (px) of the shared Cal3f; GTSAM has no PriorFactorCal3f. Cal3f's local
-    coordinate is f itself, so the Jacobian is 1."""
-    f = values.atCal3f(this.keys()[0]).fx()
-    if jacobians is not None:
-        jacobians[0] = np.ones((1, 1))
-    return np.array([f - focal0])
-
-
-def distance_error(centre: np.ndarray, distance: float, this: gtsam.CustomFactor,
-                   values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
-    """Residual ||t - centre|| - distance (world units) of one Pose3's position: a scale prior.
-    With GTSAM's retraction T * Exp([w, v]) the position moves by R v to first order, so the
-    Jacobian is [0, 0, 0, u^T R] with u the unit direction from ``centre``."""
-    pose = values.atPose3(this.keys()[0])
-    d = pose.translation() - centre
-    n = float(np.linalg.norm(d))
-    if jacobians is not None:
-        u = d / max(n, 1e-12)
-        jacobians[0] = np.concatenate([np.zeros(3), u @ pose.rotation().matrix()]).reshape(1, 6)
-    return np.array([n - distance])
-
-
-@contextlib.contextmanager
-def _quiet_native_stdout():
-    """GTSAM's GeneralSFMFactor2 prints a line to C++ stdout for every landmark behind a camera
-    during Levenberg-Marquardt (its residual is then zeroed); those lines must not reach users."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
-        os.close(devnull)
-
-
 def _noise(cfg: BAConfig):
-    pixel = gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)  # pixel_sigma px in u and v
-    if cfg.robust_kernel == "huber":
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k), pixel)
-    if cfg.robust_kernel == "cauchy":
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k), pixel)
-    return pixel
+    return robust_pixel_noise(cfg.pixel_sigma, cfg.robust_kernel, cfg.robust_k)
 
 
 def reprojection_residuals(poses: dict[int, np.ndarray], landmarks: dict[int, np.ndarray],
@@ -203,17 +162,12 @@ def _solve(problem: BAProblem, cfg: BAConfig, usable: np.ndarray, keep_lm: np.nd
     obs_kf, obs_lm, obs_uv = problem.obs_kf, problem.obs_lm, problem.obs_uv
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
-    noise = _noise(cfg)
     kf_ids = sorted(problem.poses)
     intr0 = problem.intrinsics[kf_ids[0]]
     focal0 = (focal_start or intr0.fx) if refine_focal else None
     if refine_focal:
-        values.insert(K(0), gtsam.Cal3f(focal0, intr0.cx, intr0.cy))
-        # Without rotation in the window, focal length and depth trade off; the prior keeps f
-        # near the first keyframe's value unless the observations clearly say otherwise.
-        f_noise = gtsam.noiseModel.Isotropic.Sigma(1, cfg.focal_prior_ratio * intr0.fx)  # px
-        graph.add(gtsam.CustomFactor(f_noise, [K(0)], functools.partial(focal_prior_error, intr0.fx)))
-    cal = {k: gtsam.Cal3_S2(i.fx, i.fy, 0.0, i.cx, i.cy) for k, i in problem.intrinsics.items()}
+        add_focal_variable(graph, values, focal0, intr0.fx, cfg.focal_prior_ratio * intr0.fx,
+                           intr0.cx, intr0.cy)
     for k in kf_ids:
         values.insert(X(k), gtsam.Pose3(problem.poses[k]))
     gauge = gtsam.noiseModel.Isotropic.Sigma(6, cfg.gauge_sigma)  # rad (rotation first), then m
@@ -221,32 +175,26 @@ def _solve(problem: BAProblem, cfg: BAConfig, usable: np.ndarray, keep_lm: np.nd
         graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(problem.poses[k]), gauge))
     if problem.scale_anchor is not None:
         ka, kb, dist = problem.scale_anchor
-        scale_noise = gtsam.noiseModel.Isotropic.Sigma(1, cfg.gauge_sigma)  # world units
-        graph.add(gtsam.CustomFactor(scale_noise, [X(kb)], functools.partial(
-            distance_error, problem.poses[ka][:3, 3].copy(), float(dist))))
+        add_distance_prior(graph, X(kb), problem.poses[ka][:3, 3], dist, cfg.gauge_sigma)
     for j in keep_lm:
         values.insert(L(int(j)), np.asarray(problem.landmarks[int(j)], np.float64))
-    for i in np.flatnonzero(usable):
-        k, j = int(obs_kf[i]), int(obs_lm[i])
-        if refine_focal:
-            graph.add(gtsam.GeneralSFMFactor2Cal3f(obs_uv[i], noise, X(k), L(j), K(0)))
-        else:
-            graph.add(gtsam.GenericProjectionFactorCal3_S2(obs_uv[i], noise, X(k), L(j), cal[k]))
+    sel = np.flatnonzero(usable)
+    cal_keys = sorted(problem.intrinsics)
+    cals = [gtsam.Cal3_S2(problem.intrinsics[k].fx, problem.intrinsics[k].fy, 0.0,
+                          problem.intrinsics[k].cx, problem.intrinsics[k].cy) for k in cal_keys]
+    cal_index = np.searchsorted(cal_keys, obs_kf[sel])
+    add_projection_factors(graph, _noise(cfg), obs_uv[sel], obs_kf[sel], obs_lm[sel],
+                           calibrations=cals, cal_index=cal_index, shared_focal=refine_focal)
     poses, landmarks = dict(problem.poses), dict(problem.landmarks)
     if not len(keep_lm):
         return poses, landmarks, focal0, 0
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(cfg.max_iterations)
-    params.setRelativeErrorTol(1e-4)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    with _quiet_native_stdout() if refine_focal else contextlib.nullcontext():
-        result = optimizer.optimize()
+    result, iterations = levenberg_marquardt(graph, values, cfg.max_iterations, quiet=refine_focal)
     for k in kf_ids:
         poses[k] = result.atPose3(X(k)).matrix()
     for j in keep_lm:
         landmarks[int(j)] = result.atPoint3(L(int(j)))
     focal = float(result.atCal3f(K(0)).fx()) if refine_focal else None
-    return poses, landmarks, focal, optimizer.iterations()
+    return poses, landmarks, focal, iterations
 
 
 def sliding_window_ba(problem: BAProblem, cfg: BAConfig = BAConfig(), *,
