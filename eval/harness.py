@@ -153,8 +153,11 @@ def _job(args):
 
 def evaluate(sequences: list[EvalSequence], variants: list[str], out_dir: str | Path, *,
              config: PipelineConfig | None = None, workers: int = 1, extra_hash: dict | None = None,
-             progress: bool = True, method_names: dict[str, str] | None = None) -> list[dict]:
-    """Run every (sequence, variant) not already done, then write the tables. Returns all rows."""
+             progress: bool = True, method_names: dict[str, str] | None = None,
+             address: str | None = None) -> list[dict]:
+    """Run every (sequence, variant) not already done, then write the tables. Returns all rows.
+    ``address``: run them on Ray, one task per run ("local": an embedded local Ray; "auto" or
+    HOST:PORT: a cluster), as ``mona-vo batch`` does; None: here, ``workers`` processes."""
     config = config or PipelineConfig()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -183,7 +186,19 @@ def evaluate(sequences: list[EvalSequence], variants: list[str], out_dir: str | 
             bar.update(1)
 
     try:
-        if workers > 1 and len(todo) > 1:
+        if address is not None and todo:
+            # The batch engine: one Ray task per run, on the embedded local Ray ("local") or a
+            # cluster ("auto", HOST:PORT); a run whose worker died past Ray's retries is failed.
+            from mona_vo.batch import BatchConfig, ray_map, ray_session
+
+            with ray_session(address, BatchConfig()):
+                for k, row, reason in ray_map(_job, todo):
+                    if row is None:
+                        seq, variant, _, _, chash = todo[k]
+                        row = {"sequence": seq.name, "variant": variant, "frames": seq.n_frames,
+                               "config_hash": chash, "status": f"failed: {reason}"}
+                    finished(row)
+        elif workers > 1 and len(todo) > 1:
             from concurrent.futures import ProcessPoolExecutor, as_completed
 
             pool = ProcessPoolExecutor(max_workers=workers)

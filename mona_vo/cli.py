@@ -76,6 +76,34 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(m)
     m.set_defaults(func=_cmd_masks)
 
+    bt = sub.add_parser("batch", help="many videos on Ray: run's outputs per input, batch.csv and index.html",
+                        description="One Ray task per input; DIR/<input name>/ holds what `run` writes. "
+                                    "DIR/batch.csv (one row per input: status ok|failed|skipped, the usable "
+                                    "verdict, key numbers, node) and DIR/index.html are rewritten as tasks "
+                                    "finish. A rerun skips inputs done with the same config and retries "
+                                    "failed ones. Exit 1 when any input failed. Without --address a local "
+                                    "Ray starts in this process (loopback only, no dashboard, token auth).")
+    bt.add_argument("inputs", nargs="+", metavar="INPUT",
+                    help="video files, frame folders, or @LIST (a text file, one path per line; relative "
+                         "paths are relative to the list's folder)")
+    bt.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
+    bt.add_argument("--address", metavar="auto|HOST:PORT", default=None,
+                    help="join this Ray cluster (auto: the one `ray start` made on this machine); "
+                         "default: an embedded local Ray on this machine's cores")
+    bt.add_argument("--cpus-per-video", type=float, default=None, metavar="N",
+                    help="Ray CPUs reserved per video (default 1; same as --set batch.cpus_per_video=N)")
+    bt.add_argument("--stride", type=int, default=1, help="use every N-th frame (default 1)")
+    bt.add_argument("--max-frames", type=int, default=None, help="stop each input after this many frames")
+    bt.add_argument("--calib", metavar="fx,fy,cx,cy|FILE",
+                    help="intrinsics for every input (default: the field-of-view guess, per input)")
+    bt.add_argument("--masks", default="mona", metavar="mona|none|DIR",
+                    help="moving-object masks: MONA (default), none, or DIR/<input name>/<frame name>.png")
+    _add_mask_options(bt, allow_folder=False)
+    _add_config_options(bt)
+    _add_refine_option(bt)
+    bt.add_argument("--overlay", action="store_true", help="also write overlay.mp4 per input")
+    bt.set_defaults(func=_cmd_batch)
+
     d = sub.add_parser("demo", help="generate a synthetic dynamic scene and compare no masks, MONA and GT masks")
     d.add_argument("--out", metavar="DIR", help="keep the generated input and the runs here")
     d.add_argument("--preset", default="one-large", help="synthetic scene preset (static, one-large, several, fast-rotation)")
@@ -125,6 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
     es.add_argument("--masks-root", help="folder of GT masks <seq>/frame_XXXX.png, for the gt variant")
     es.add_argument("--out", required=True, metavar="DIR", help="output folder")
     es.add_argument("--workers", type=int, default=1, help="runs in parallel (processes)")
+    es.add_argument("--address", metavar="local|auto|HOST:PORT", default=None,
+                    help="run on Ray as `batch` does, one task per run: local (an embedded local Ray on "
+                         "this machine's cores), auto or HOST:PORT (a cluster); replaces --workers")
     _add_config_options(es)
     _add_refine_option(es)
     es.set_defaults(func=_cmd_eval_sintel)
@@ -136,6 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
     eu.add_argument("--calib", metavar="fx,fy,cx,cy|FILE", help="intrinsics (default: the folder's calib.txt, else a guess)")
     eu.add_argument("--out", required=True, metavar="DIR", help="output folder")
     eu.add_argument("--workers", type=int, default=1, help="runs in parallel (processes)")
+    eu.add_argument("--address", metavar="local|auto|HOST:PORT", default=None,
+                    help="run on Ray as `batch` does, one task per run: local (an embedded local Ray on "
+                         "this machine's cores), auto or HOST:PORT (a cluster); replaces --workers")
     _add_config_options(eu)
     _add_refine_option(eu)
     eu.set_defaults(func=_cmd_eval_tum)
@@ -206,6 +240,28 @@ def _cmd_masks(args) -> int:
     print(f"{report['frames']} masks, {report['frames_per_second']} frames/s, mean coverage "
           f"{100 * report['mean_mask_coverage']:.1f} %; wrote {args.out}/masks/")
     return 0
+
+
+def _cmd_batch(args) -> int:
+    from mona_vo.batch import RunOptions, batch_config_from_sets, run_batch, split_batch_sets
+
+    # --set batch.* / verdict.* go to the batch's config, the rest to the pipeline's.
+    pipeline_sets, batch_sets = split_batch_sets(getattr(args, "set", None) or [])
+    args.set = pipeline_sets
+    if args.cpus_per_video is not None:
+        batch_sets["batch.cpus_per_video"] = str(args.cpus_per_video)
+    options = RunOptions(config=_pipeline_config(args), calib=args.calib, masks=args.masks,
+                         stride=args.stride, max_frames=args.max_frames, overlay=args.overlay)
+    result = run_batch(args.inputs, args.out, options=options, config=batch_config_from_sets(batch_sets),
+                       address=args.address, progress=not args.quiet)
+    rows = result.rows
+    count = {s: sum(r.get("status") == s for r in rows) for s in ("ok", "skipped", "failed")}
+    usable = sum(bool(r.get("usable")) for r in rows)
+    print(f"{len(rows)} inputs: {count['ok']} ok, {count['skipped']} skipped, {count['failed']} failed; "
+          f"{usable} usable; {result.seconds:.1f} s; wrote {result.out_dir}/batch.csv and index.html")
+    for r in result.failed:
+        print(f"  failed {r['name']}: {r.get('reason')}")
+    return 1 if result.failed else 0
 
 
 def _cmd_demo(args) -> int:
@@ -315,7 +371,7 @@ def _cmd_eval_sintel(args) -> int:
         raise ConfigError("variant 'gt' needs --masks-root (folder of <seq>/frame_XXXX.png masks)")
     seqs = sintel_sequences(args.root, pass_=args.pass_, masks_root=args.masks_root,
                             names=args.seqs.split(",") if args.seqs else None)
-    rows = evaluate(seqs, variants, args.out, config=_pipeline_config(args), workers=args.workers,
+    rows = evaluate(seqs, variants, args.out, config=_pipeline_config(args), workers=args.workers, address=args.address,
                     extra_hash={"dataset": "sintel", "pass": args.pass_}, progress=not args.quiet)
     _print_summary(rows)
     print(f"wrote {args.out}/results.md")
@@ -334,7 +390,7 @@ def _cmd_eval_tum(args) -> int:
         raise ConfigError("TUM-layout folders carry no moving-object masks: variant 'gt' is not available")
     calib = parse_calibration(args.calib) if args.calib else None
     seqs = tum_sequences(args.root, calib=calib)
-    rows = evaluate(seqs, variants, args.out, config=_pipeline_config(args), workers=args.workers,
+    rows = evaluate(seqs, variants, args.out, config=_pipeline_config(args), workers=args.workers, address=args.address,
                     extra_hash={"dataset": "tum"}, progress=not args.quiet)
     _print_summary(rows)
     print(f"wrote {args.out}/results.md")

@@ -46,13 +46,17 @@ def _mask_source(masks: str | None, source, width: int, height: int, *, subset: 
 def run(input_path: str | Path, out_dir: str | Path, *, calib: str | None = None,
         masks: str | None = "mona", config: PipelineConfig | None = None, overlay: bool = False,
         stride: int = 1, max_frames: int | None = None, progress: bool = True,
-        gt_path: str | Path | None = None) -> dict:
+        gt_path: str | Path | None = None, verdict=None, page_name: str | None = None) -> dict:
     """Trajectory, masks and report of a video file or a folder of images. Returns the report
-    (also written to ``out_dir/report.json``)."""
+    (also written to ``out_dir/report.json``). Also writes ``out_dir/index.html``, the page of
+    :mod:`mona_vo.report_html` for this one video (``verdict``: a batch.VerdictConfig, None for
+    the defaults; ``page_name``: the clip's name on it, default the input's name)."""
     from data_tools.calibration import parse_calibration
     from data_tools.frames import open_frames
     from data_tools.run_outputs import RunOutputs
     from eval.plots import plot_trajectory
+    from mona_vo.batch import run_page_files
+    from mona_vo.report_html import ThumbnailStrip
 
     config = config or PipelineConfig()
     # Everything the user gave is checked before the first frame is processed, so that a bad
@@ -74,8 +78,11 @@ def run(input_path: str | Path, out_dir: str | Path, *, calib: str | None = None
             overlay_writer = OverlayWriter(outputs.staging / "overlay.mp4",
                                            fps=source.fps or 10.0)
 
+        strip = ThumbnailStrip(len(source))
+
         def on_frame(f: FrameOutput):
             outputs.add_mask(f.name, f.mask)
+            strip.add(f)
             if overlay_writer is not None:
                 overlay_writer.add(f)
 
@@ -98,6 +105,8 @@ def run(input_path: str | Path, out_dir: str | Path, *, calib: str | None = None
         report = build_report(result, input_path=input_path, source=source, masks=masks,
                               config=config, calib_given=intr is not None)
         extra = {"trajectory.png": plot}
+        extra.update(run_page_files(outputs.staging, report, strip, verdict=verdict,
+                                    name=page_name or Path(input_path).name))
         if overlay_writer is not None:
             extra["overlay.mp4"] = overlay_writer.path
         outputs.commit(timestamps=vo.timestamps, poses=vo.poses, report=report, extra_files=extra)
@@ -118,6 +127,7 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "frames": result.n_frames,
         "frames_with_pose": int(np.isfinite(vo.poses).all(axis=(1, 2)).sum()),
         "keyframes": int(vo.is_keyframe.sum()),
+        "reprojection_rmse_px": getattr(vo, "reprojection_rmse_px", None),
         "image_size": [result.width, result.height],
         "masks": masks or "none",
         "mean_mask_coverage": float(result.mask_coverage.mean()) if result.n_frames else 0.0,
