@@ -674,6 +674,8 @@ def _trace(boxes: Sequence[_Box], i: int, R_wc: np.ndarray, c: np.ndarray, grid:
 # ----------------------------------------------------------------------------------------------
 # Recipes of the newer presets: what a seed samples (camera path, movers, effects)
 
+_MIXED_PATH_CYCLE = ("handheld", "forward", "follow", "fast-rotation", "creep", "pan",
+                     "street-walk", "slow-pan")
 _MIXED_KIND_P = {"person": 0.55, "car": 0.25, "animal": 0.2}
 _MIXED_BEHAVIOUR_P = {"along": 0.2, "crossing": 0.2, "oncoming": 0.12, "slow": 0.18,
                       "enter-leave": 0.2, "follow": 0.1}
@@ -683,9 +685,11 @@ _FUR_COLOURS = ((120, 90, 60), (60, 55, 50), (200, 190, 170), (150, 120, 80), (9
 _GLASS_COLOUR = (45, 55, 65)
 
 
-def _draw_recipe(cfg: SceneConfig) -> dict:
-    """What a seed of a newer preset samples, from its own stream ``[seed, 6]``: camera path
-    name, movers as (kind, behaviour) pairs, and image effects (name -> parameters)."""
+def draw_recipe(cfg: SceneConfig) -> dict:
+    """What a seed of a newer preset (creep, pan, mixed) samples, without building the scene,
+    from its own stream ``[seed, 6]``: ``camera`` (a CAMERA_PATHS name), ``movers`` as (kind,
+    behaviour) pairs and ``effects`` (name -> parameters). The scene's ``recipe`` is this, except
+    that movers it could not place are left out."""
     rng = np.random.default_rng([cfg.seed, 6, list(PRESETS).index(cfg.preset)])
     if cfg.preset == "creep":
         behaviour = str(rng.choice(["along", "crossing", "oncoming", "slow"]))
@@ -694,10 +698,9 @@ def _draw_recipe(cfg: SceneConfig) -> dict:
         kind = "car" if rng.random() < 0.3 else "person"
         behaviour = str(rng.choice(["along", "crossing", "oncoming"]))
         return {"camera": "pan", "movers": [(kind, behaviour)], "effects": {}}
-    names = list(CAMERA_PATHS)
-    camera = str(rng.choice(names)) if cfg.camera_path is None else cfg.camera_path
-    if cfg.camera_path is not None:
-        rng.random()      # keep the later draws of a seed the same whichever path is forced
+    # The camera path cycles with the seed, so any 8 consecutive seeds hold every path.
+    camera = _MIXED_PATH_CYCLE[cfg.seed % len(_MIXED_PATH_CYCLE)]
+    camera = camera if cfg.camera_path is None else cfg.camera_path
     count = int(rng.choice([1, 2, 3], p=[0.45, 0.35, 0.2]))
     movers: list[tuple[str, str]] = []
     if camera == "follow":
@@ -796,7 +799,7 @@ class SyntheticScene:
         fast = cfg.preset == "fast-rotation"
         self._legacy = cfg.preset in LEGACY_PRESETS
         self._stream = -1 if self._legacy else 100 + list(PRESETS).index(cfg.preset)
-        self.recipe: dict | None = None if self._legacy else _draw_recipe(cfg)
+        self.recipe: dict | None = None if self._legacy else draw_recipe(cfg)
         self._style_rng = np.random.default_rng([cfg.seed, 8])
 
         rng = np.random.default_rng([cfg.seed, 1])
@@ -986,6 +989,9 @@ class SyntheticScene:
         """A new material: texture size, texels per metre = density * fx, base colour RGB; the
         ``mixed`` preset draws its texture style for the ``role`` (wall, floor, sky, static,
         mover) from its own stream."""
+        if not self._legacy:   # the texture's period in metres stays about the same at any fx
+            scale = 2.0 ** np.ceil(np.log2(max(self.intrinsics.fx, 1.0) / 800.0))
+            size = int(np.clip(size * scale, 64, size))
         style = (_draw_style(self._style_rng, role, size, len(self._materials))
                  if self.config.preset == "mixed" else _DEFAULT_STYLE)
         self._materials.append((size, density * self.intrinsics.fx, tuple(int(v) for v in rgb),
