@@ -68,14 +68,14 @@ def track_grid(image0: np.ndarray, image1: np.ndarray, *, grid_size: int | None 
     """
     from mona_vo.point_selection import grid_points, texture_score
     from mona_vo.tracking import to_gray
-    from mona_vo.masks import build_tracker
+    from mona_vo.pipeline import PipelineConfig
     from mona_vo.vo import VOConfig
 
     cfg = VOConfig()
     k = grid_size or cfg.grid_size
     score = texture_score(to_gray(image0), point_score or cfg.point_score)
     pts = grid_points(score, k, k)
-    tracker = build_tracker(cfg.tracker, cfg.tracker_device, cfg.tracker_checkpoint)
+    tracker = PipelineConfig().build_tracker()
     tracker.step(image0)
     ids = tracker.add_points(pts)
     upd = tracker.step(image1)

@@ -66,7 +66,9 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig) -
 
 
 def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
-              config: PipelineConfig | None = None, on_row=None) -> list[dict]:
+              config: PipelineConfig | None = None, on_row=None, repeats: int = 1) -> list[dict]:
+    """One row per preset x seed x variant x repeat. ``repeats`` > 1 runs each sequence again to
+    measure the run-to-run spread of one input (0 when the pipeline is deterministic)."""
     config = config or PipelineConfig()
     rows = []
     for preset in presets:
@@ -74,11 +76,12 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
             scene, frames, masks = render_sequence(preset, seed, n_frames, width, height)
             coverage = float(np.mean([m.mean() for m in masks]))
             for variant in variants:
-                row = {"preset": preset, "seed": seed, "coverage": coverage,
-                       **run_variant(scene, frames, masks, variant, config)}
-                rows.append(row)
-                if on_row is not None:
-                    on_row(row)
+                for repeat in range(repeats):
+                    row = {"preset": preset, "seed": seed, "repeat": repeat, "coverage": coverage,
+                           **run_variant(scene, frames, masks, variant, config)}
+                    rows.append(row)
+                    if on_row is not None:
+                        on_row(row)
             del frames, masks
     return rows
 
@@ -87,15 +90,33 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def summarize(rows: list[dict]) -> list[dict]:
-    """Mean and max ATE % per (preset, variant), and mean VO frames/s."""
+def summarize(rows: list[dict], baseline: str = "none") -> list[dict]:
+    """Per (preset, variant), over seeds: ATE % mean with its spread (standard deviation over
+    seeds, min and max), the paired difference to the ``baseline`` variant on the same seeds
+    (mean and standard deviation; a difference smaller than its spread is no difference), the
+    run-to-run spread of one input (largest max - min ATE % over repeats, 0 without repeats),
+    and mean VO frames/s."""
     out = []
     keys = sorted({(r["preset"], r["variant"]) for r in rows}, key=lambda k: (k[0], k[1]))
+    first = [r for r in rows if r.get("repeat", 0) == 0]
     for preset, variant in keys:
-        sel = [r for r in rows if r["preset"] == preset and r["variant"] == variant]
+        every = [r for r in rows if r["preset"] == preset and r["variant"] == variant]
+        sel = [r for r in first if r["preset"] == preset and r["variant"] == variant]
+        ate = np.array([r["ate_pct"] for r in sel])
+        base = {r["seed"]: r["ate_pct"] for r in first
+                if r["preset"] == preset and r["variant"] == baseline}
+        diff = np.array([r["ate_pct"] - base[r["seed"]] for r in sel if r["seed"] in base])
+        by_seed: dict[int, list[float]] = {}
+        for r in every:
+            by_seed.setdefault(r["seed"], []).append(r["ate_pct"])
         out.append({"preset": preset, "variant": variant, "n": len(sel),
-                    "ate_pct_mean": float(np.mean([r["ate_pct"] for r in sel])),
-                    "ate_pct_max": float(np.max([r["ate_pct"] for r in sel])),
+                    "ate_pct_mean": float(np.mean(ate)),
+                    "ate_pct_std": float(np.std(ate, ddof=1)) if len(ate) > 1 else 0.0,
+                    "ate_pct_min": float(np.min(ate)),
+                    "ate_pct_max": float(np.max(ate)),
+                    "d_vs_baseline_mean": float(np.mean(diff)) if len(diff) else float("nan"),
+                    "d_vs_baseline_std": float(np.std(diff, ddof=1)) if len(diff) > 1 else float("nan"),
+                    "repeat_spread_pct": float(max(max(v) - min(v) for v in by_seed.values())),
                     "ate_mean": float(np.mean([r["ate"] for r in sel])),
                     "rpe_trans_mean": float(np.mean([r["rpe_trans"] for r in sel])),
                     "rpe_rot_mean": float(np.mean([r["rpe_rot_deg"] for r in sel])),
@@ -112,21 +133,41 @@ def format_row(r: dict) -> str:
             f"masks {r['mask_ms_per_frame']:5.1f} ms/frame  low-conf {r['low_confidence']}")
 
 
-def format_summary(summary: list[dict]) -> str:
-    lines = [f"{'preset':13s} {'variant':7s} {'n':>2s} {'ATE% mean':>9s} {'ATE% max':>9s} "
-             f"{'RPE m':>7s} {'RPE deg':>7s} {'VO fps':>7s} {'mask ms':>7s}"]
+def format_summary(summary: list[dict], baseline: str = "none") -> str:
+    """The summary as a table: ATE % mean +- standard deviation over seeds [min, max], the paired
+    difference to the baseline variant +- its standard deviation, the run-to-run spread."""
+    lines = [f"{'preset':13s} {'variant':7s} {'n':>2s} {'ATE% mean+-sd':>15s} {'[min, max]':>17s} "
+             f"{'vs ' + baseline + ' +-sd':>17s} {'rerun':>6s} {'RPE m':>7s} {'RPE deg':>7s} "
+             f"{'VO fps':>7s} {'mask ms':>7s}"]
     for s in summary:
-        lines.append(f"{s['preset']:13s} {s['variant']:7s} {s['n']:2d} {s['ate_pct_mean']:9.3f} "
-                     f"{s['ate_pct_max']:9.3f} {s['rpe_trans_mean']:7.4f} {s['rpe_rot_mean']:7.3f} "
+        d = ("-" if s["variant"] == baseline or s["d_vs_baseline_mean"] != s["d_vs_baseline_mean"]
+             else f"{s['d_vs_baseline_mean']:+.3f}+-{s['d_vs_baseline_std']:.3f}")
+        lines.append(f"{s['preset']:13s} {s['variant']:7s} {s['n']:2d} "
+                     f"{s['ate_pct_mean']:7.3f}+-{s['ate_pct_std']:6.3f} "
+                     f"[{s['ate_pct_min']:6.3f}, {s['ate_pct_max']:7.3f}] {d:>17s} "
+                     f"{s['repeat_spread_pct']:6.3f} {s['rpe_trans_mean']:7.4f} {s['rpe_rot_mean']:7.3f} "
                      f"{s['vo_fps_mean']:7.1f} {s['mask_ms_mean']:7.1f}")
+    lines.append("ATE% over seeds: mean +- standard deviation [min, max]; 'vs' is the paired difference "
+                 "to the same seeds' baseline; 'rerun' the largest spread of one input over --repeats. "
+                 "A difference within its +-sd is no difference.")
     return "\n".join(lines)
 
 
 def parse_seeds(text: str) -> list[int]:
+    """``"0-2,5"`` -> ``[0, 1, 2, 5]``; anything else raises ConfigError naming --seeds."""
+    from mona_vo.errors import ConfigError
+
     out = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out.extend(range(int(a), int(b) + 1) if b else [int(a)])
+    try:
+        for part in text.split(","):
+            a, _, b = part.strip().partition("-")
+            lo, hi = int(a), int(b) if b else int(a)
+            if lo < 0 or hi < lo:
+                raise ValueError
+            out.extend(range(lo, hi + 1))
+    except ValueError:
+        raise ConfigError(f"--seeds expects non-negative seeds and ranges such as 0-2 or 0,3, "
+                          f"not '{text}'") from None
     return out
 
 
@@ -138,6 +179,8 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=50)
     ap.add_argument("--size", default="1024x436")
     ap.add_argument("--set", action="append", default=[], help="config override key=value")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="runs of each sequence, to measure the run-to-run spread (default 1)")
     args = ap.parse_args(argv)
     from mona_vo.config import load_config, parse_set_options
 
@@ -145,7 +188,7 @@ def main(argv=None) -> int:
     cfg = load_config(PipelineConfig, None, parse_set_options(args.set))
     rows = benchmark(args.presets.split(","), parse_seeds(args.seeds), args.variants.split(","),
                      n_frames=args.frames, width=w, height=h, config=cfg,
-                     on_row=lambda r: print(format_row(r), flush=True))
+                     on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats))
     print()
     print(format_summary(summarize(rows)))
     print(f"peak memory {peak_memory_mb():.0f} MB")

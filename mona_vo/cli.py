@@ -1,7 +1,8 @@
 """mona-vo: camera trajectories of videos in which people and cars move.
 
 Commands parse options, call one library function (mona_vo.run, eval.*) and print. Imports are
-lazy so that --help stays fast. Any MonaVoError becomes one line on stderr and exit code 1.
+lazy so that --help stays fast. Any MonaVoError, and any bad option, becomes one line on stderr
+and exit code 1. -q/-v and the config options may come before or after the command.
 """
 from __future__ import annotations
 
@@ -11,20 +12,49 @@ import logging
 import sys
 
 from mona_vo import __version__
-from mona_vo.errors import MonaVoError
+from mona_vo.errors import ConfigError, MonaVoError
+from mona_vo.presets import PRESETS
+
+# Options every command takes, and the config options of the commands that build a
+# PipelineConfig. Both may be typed before the command too: there they land under "top_<dest>"
+# and _merge_shared() folds them in (a value after the command wins; --set items add up).
+_SHARED = ("quiet", "verbose")
+_CONFIG = ("config", "set", "preset", "device", "weights")
 
 
-def _add_config_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", metavar="YAML", help="YAML file of config overrides (keys as in report.json's config)")
-    p.add_argument("--set", metavar="KEY=VALUE", action="append", default=[],
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors and exit code 1 (argparse's own usage errors included)."""
+
+    def error(self, message: str):
+        self.exit(1, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _add_shared_options(p: argparse.ArgumentParser, *, top: bool = False) -> None:
+    pre = "top_" if top else ""
+    verbosity = p.add_mutually_exclusive_group()
+    verbosity.add_argument("-q", "--quiet", dest=pre + "quiet", action="store_true",
+                           default=argparse.SUPPRESS, help="no progress bars, only results and errors")
+    verbosity.add_argument("-v", "--verbose", dest=pre + "verbose", action="store_true",
+                           default=argparse.SUPPRESS, help="log what each stage does")
+
+
+def _add_config_options(p: argparse.ArgumentParser, *, top: bool = False, preset: bool = True) -> None:
+    """--config, --set, --preset, --device, --weights: a run's PipelineConfig (see _pipeline_config)."""
+    pre = "top_" if top else ""
+    S = argparse.SUPPRESS
+    p.add_argument("--config", dest=pre + "config", metavar="YAML", default=S,
+                   help="YAML file of config values (keys as printed by `mona-vo config`)")
+    p.add_argument("--set", dest=pre + "set", metavar="KEY=VALUE", action="append", default=S,
                    help="override one config value, e.g. --set vo.grid_size=20 (repeatable; applied after --config)")
-    p.add_argument("--preset", choices=["default", "fast", "accurate"], default="default",
-                   help="speed/accuracy preset: fast (fewer points, smaller windows), default, accurate (more points, larger windows)")
-    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
-                   help="device for neural back ends (classical back ends always run on the CPU)")
-    p.add_argument("--weights", metavar="DIR",
-                   help="folder of neural checkpoints (RAFT, YOLO, SAM, CoTracker) under their documented names; "
-                        "default $MONA_VO_WEIGHTS")
+    if preset:
+        p.add_argument("--preset", dest=pre + "preset", choices=sorted(PRESETS), default=S,
+                       help="speed/accuracy preset, applied first: fast (fewer points, smaller windows), "
+                            "default, accurate (more points, larger windows)")
+    p.add_argument("--device", dest=pre + "device", metavar="cpu|cuda[:N]", default=S,
+                   help="device of the neural back ends, same as --set device=... (classical ones run on the CPU)")
+    p.add_argument("--weights", dest=pre + "weights", metavar="DIR", default=S,
+                   help="folder of neural checkpoints (RAFT, YOLO, SAM, CoTracker) under their documented names, "
+                        "same as --set weights=...; default $MONA_VO_WEIGHTS")
 
 
 def _add_refine_option(p: argparse.ArgumentParser) -> None:
@@ -38,7 +68,8 @@ def _add_mask_options(p: argparse.ArgumentParser, *, allow_folder: bool = True) 
         p.add_argument("--masks", default="mona", metavar="mona|none|DIR",
                        help="moving-object masks: computed by MONA (default), none, or read from DIR/<frame name>.png")
     p.add_argument("--prompt", choices=["boxes", "points", "raw-boxes"], default=None,
-                   help="MONA segmenter prompts: filtered boxes (the method, default), dynamic points only, or all detector boxes (ablations)")
+                   help="MONA segmenter prompts: filtered boxes (the method, default), dynamic points only, "
+                        "or all detector boxes (ablations); same as --set masks.prompt=...")
 
 
 def _add_input_options(p: argparse.ArgumentParser) -> None:
@@ -48,32 +79,47 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
 
 
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    """Everything `run` takes about one input: input, --out, --stride, --max-frames, --calib,
+    --masks, --prompt, the config options and --refine (reused by `batch`)."""
+    _add_input_options(p)
+    p.add_argument("--calib", metavar="fx,fy,cx,cy|FILE",
+                   help="intrinsics in pixels, or a file (fx fy cx cy, or KITTI calib.txt); "
+                        "default: a guess from the config key assumed_hfov_deg (60 degrees)")
+    _add_mask_options(p)
+    _add_config_options(p)
+    _add_refine_option(p)
+
+
+def _sub(sub, name: str, *, config: bool = False, **kwargs) -> argparse.ArgumentParser:
+    """A subcommand parser with the shared options (and the config options when it builds a config)."""
+    p = sub.add_parser(name, **kwargs)
+    _add_shared_options(p)
+    if config:
+        _add_config_options(p)
+    p.set_defaults(takes_config=config)
+    return p
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="mona-vo", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = _Parser(prog="mona-vo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=f"mona-vo {__version__}")
-    verbosity = p.add_mutually_exclusive_group()
-    verbosity.add_argument("-q", "--quiet", action="store_true", help="no progress bars, only results and errors")
-    verbosity.add_argument("-v", "--verbose", action="store_true", help="log what each stage does")
+    _add_shared_options(p, top=True)
+    _add_config_options(p, top=True)
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
-    r = sub.add_parser("run", help="camera trajectory, masks and report of a video or image folder",
-                       description="Writes DIR/trajectory.txt (TUM, camera-to-world), DIR/masks/, "
-                                   "DIR/report.json, DIR/trajectory.png and, with --overlay, DIR/overlay.mp4.")
-    _add_input_options(r)
-    r.add_argument("--calib", metavar="fx,fy,cx,cy|FILE",
-                   help="intrinsics in pixels, or a file (fx fy cx cy, or KITTI calib.txt); default: a 60-degree field-of-view guess")
-    _add_mask_options(r)
-    _add_config_options(r)
-    _add_refine_option(r)
+    r = _sub(sub, "run", help="camera trajectory, masks and report of a video or image folder",
+             description="Writes DIR/trajectory.txt (TUM, camera-to-world), DIR/masks/, "
+                         "DIR/report.json, DIR/trajectory.png and, with --overlay, DIR/overlay.mp4.")
+    add_run_options(r)
+    r.set_defaults(takes_config=True)
     r.add_argument("--overlay", action="store_true", help="also write DIR/overlay.mp4 with masks, points and boxes drawn")
     r.add_argument("--gt", metavar="TUM_FILE", help="ground-truth trajectory to draw in trajectory.png")
     r.set_defaults(func=_cmd_run)
 
-    m = sub.add_parser("masks", help="MONA moving-object masks only, written to DIR/masks/")
+    m = _sub(sub, "masks", config=True, help="MONA moving-object masks only, written to DIR/masks/")
     _add_input_options(m)
     _add_mask_options(m, allow_folder=False)
-    _add_config_options(m)
     m.set_defaults(func=_cmd_masks)
 
     bt = sub.add_parser("batch", help="many videos on Ray: run's outputs per input, batch.csv and index.html",
@@ -104,30 +150,41 @@ def build_parser() -> argparse.ArgumentParser:
     bt.add_argument("--overlay", action="store_true", help="also write overlay.mp4 per input")
     bt.set_defaults(func=_cmd_batch)
 
-    d = sub.add_parser("demo", help="generate a synthetic dynamic scene and compare no masks, MONA and GT masks")
-    d.add_argument("--out", metavar="DIR", help="keep the generated input and the runs here")
-    d.add_argument("--preset", default="one-large", help="synthetic scene preset (static, one-large, several, fast-rotation)")
+    d = _sub(sub, "demo", help="generate a synthetic dynamic scene and compare no masks, MONA and GT masks",
+             description="Renders a synthetic scene and runs it three times (no masks, MONA masks, GT "
+                         "masks); prints the ATE of each, the output folder and the plot to open.")
+    d.add_argument("--out", metavar="DIR", help="output folder (default: a new temporary folder, kept)")
+    d.add_argument("--preset", default="one-large",
+                   help="synthetic scene preset (data_tools.synthetic.PRESETS, e.g. static, one-large, several)")
     d.add_argument("--seed", type=int, default=5, help="scene seed (default 5: a car keeps pace ahead of the camera)")
     d.add_argument("--frames", type=int, default=40, help="number of frames")
     d.add_argument("--size", default="1024x436", help="image size WxH (default Sintel's 1024x436)")
-    d.set_defaults(func=_cmd_demo)
+    _add_config_options(d, preset=False)
+    d.set_defaults(func=_cmd_demo, takes_config=True)
 
-    b = sub.add_parser("bench", help="speed and accuracy on generated 1024x436 scenes, beside COLMAP (pycolmap)",
-                       description="Generates sequences, runs mona-vo (no masks, MONA, GT masks) and COLMAP's "
-                                   "incremental SfM (without and with GT masks) on the same frames, and prints "
-                                   "ATE, frames posed, frames/s per stage, mask IoU and peak memory.")
+    b = _sub(sub, "bench", config=True,
+             help="speed and accuracy on generated 1024x436 scenes, beside COLMAP (pycolmap)",
+             description="Generates sequences, runs mona-vo (no masks, MONA, GT masks) and COLMAP's "
+                         "incremental SfM (without and with GT masks) on the same frames, and prints "
+                         "ATE, frames posed, frames/s per stage, mask IoU and peak memory.")
     b.add_argument("--presets", default="static,one-large,several", help="comma-separated generator presets")
     b.add_argument("--seeds", default="0", help="seeds, e.g. 0-2 or 0,3")
     b.add_argument("--frames", type=int, default=50, help="frames per sequence")
     b.add_argument("--size", default="1024x436", help="image size WxH")
     b.add_argument("--no-peer", action="store_true", help="skip COLMAP (it runs at about 1 frame/s)")
     b.add_argument("--out", metavar="FILE", help="also write the rows as JSON here")
-    _add_config_options(b)
     b.set_defaults(func=_cmd_bench)
 
-    e = sub.add_parser("eval", help="evaluate trajectories, masks, or whole datasets")
+    c = _sub(sub, "config", config=True, help="print the configuration as YAML, a comment per key",
+             description="Prints the default configuration (after --preset, --config and --set, if "
+                         "given) as YAML with each key's meaning and allowed values. The output loads "
+                         "back with --config and gives the same run.")
+    c.add_argument("--out", metavar="FILE", help="write the YAML here instead of printing it")
+    c.set_defaults(func=_cmd_config)
+
+    e = _sub(sub, "eval", help="evaluate trajectories, masks, or whole datasets")
     esub = e.add_subparsers(dest="eval_command", metavar="WHAT")
-    et = esub.add_parser("traj", help="ATE/RPE of an estimate against GT (evo's numbers), printed as JSON")
+    et = _sub(esub, "traj", help="ATE/RPE of an estimate against GT (evo's numbers), printed as JSON")
     et.add_argument("--gt", required=True, help="ground-truth trajectory file")
     et.add_argument("--est", required=True, help="estimated trajectory file")
     et.add_argument("--format", choices=["tum", "kitti"], default="tum",
@@ -136,15 +193,15 @@ def build_parser() -> argparse.ArgumentParser:
                     help="alignment before the errors: sim3 for monocular (default), se3 for metric estimates")
     et.add_argument("--max-diff", type=float, default=0.01, help="timestamp association tolerance, seconds (tum)")
     et.set_defaults(func=_cmd_eval_traj)
-    em = esub.add_parser("masks", help="DAVIS region J and boundary F of predicted masks, printed as JSON")
+    em = _sub(esub, "masks", help="DAVIS region J and boundary F of predicted masks, printed as JSON")
     em.add_argument("--pred", required=True, help="folder of predicted mask PNGs")
     em.add_argument("--gt", required=True, help="folder of ground-truth mask PNGs (same file names)")
     em.set_defaults(func=_cmd_eval_masks)
 
-    es = esub.add_parser("sintel", help="MPI Sintel camera-trajectory benchmark and the paper's ablations",
-                         description="Runs every sequence x variant, writes DIR/results.csv, results.json, "
-                                     "results.md and DIR/<variant>/<seq>/trajectory.txt. Rerunning skips "
-                                     "runs already done with the same config and retries failed ones.")
+    es = _sub(esub, "sintel", config=True, help="MPI Sintel camera-trajectory benchmark and the paper's ablations",
+              description="Runs every sequence x variant, writes DIR/results.csv, results.json, "
+                          "results.md and DIR/<variant>/<seq>/trajectory.txt. Rerunning skips "
+                          "runs already done with the same config and retries failed ones.")
     es.add_argument("--root", required=True, help="Sintel root (the folder holding training/)")
     es.add_argument("--pass", dest="pass_", choices=["final", "clean"], default="final", help="render pass (default final)")
     es.add_argument("--seqs", help="comma-separated sequences (default: the 14 of the protocol)")
@@ -156,11 +213,10 @@ def build_parser() -> argparse.ArgumentParser:
     es.add_argument("--address", metavar="local|auto|HOST:PORT", default=None,
                     help="run on Ray as `batch` does, one task per run: local (an embedded local Ray on "
                          "this machine's cores), auto or HOST:PORT (a cluster); replaces --workers")
-    _add_config_options(es)
     _add_refine_option(es)
     es.set_defaults(func=_cmd_eval_sintel)
 
-    eu = esub.add_parser("tum", help="folders in TUM RGB-D layout (TUM, Bonn, ETH3D): ATE/RPE per variant")
+    eu = _sub(esub, "tum", config=True, help="folders in TUM RGB-D layout (TUM, Bonn, ETH3D): ATE/RPE per variant")
     eu.add_argument("--root", required=True, action="append",
                     help="a folder with rgb.txt, rgb/ and groundtruth.txt (repeatable)")
     eu.add_argument("--variants", default="none,mona", help="comma-separated: none, mona, mona-points, mona-raw-boxes")
@@ -170,13 +226,12 @@ def build_parser() -> argparse.ArgumentParser:
     eu.add_argument("--address", metavar="local|auto|HOST:PORT", default=None,
                     help="run on Ray as `batch` does, one task per run: local (an embedded local Ray on "
                          "this machine's cores), auto or HOST:PORT (a cluster); replaces --workers")
-    _add_config_options(eu)
     _add_refine_option(eu)
     eu.set_defaults(func=_cmd_eval_tum)
 
-    ef = esub.add_parser("flow", help="end-point error and speed of a flow back end on one pair with GT flow, as JSON",
-                         description="EPE over valid non-occluded pixels (epe_noc) and over all valid pixels "
-                                     "(epe_all), and ms per pair (median of 5 calls after a warm-up).")
+    ef = _sub(esub, "flow", help="end-point error and speed of a flow back end on one pair with GT flow, as JSON",
+              description="EPE over valid non-occluded pixels (epe_noc) and over all valid pixels "
+                          "(epe_all), and ms per pair (median of 5 calls after a warm-up).")
     ef.add_argument("--image0", required=True, help="first image")
     ef.add_argument("--image1", required=True, help="second image")
     ef.add_argument("--gt", required=True, metavar="FLO", help="ground-truth flow image0 -> image1 (.flo)")
@@ -187,10 +242,10 @@ def build_parser() -> argparse.ArgumentParser:
     ef.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="device of a neural back end")
     ef.set_defaults(func=_cmd_eval_flow)
 
-    ev = esub.add_parser("two-view", help="two-view initialisation (LK tracks + five-point pose) against GT, as JSON",
-                         description="Tracks the VO's grid points from image0 to image1 with its tracker, estimates "
-                                     "the relative pose and prints its rotation and translation-direction errors "
-                                     "against rows i, j of a KITTI pose file (GT: inv(T_i) T_j).")
+    ev = _sub(esub, "two-view", help="two-view initialisation (LK tracks + five-point pose) against GT, as JSON",
+              description="Tracks the VO's grid points from image0 to image1 with its tracker, estimates "
+                          "the relative pose and prints its rotation and translation-direction errors "
+                          "against rows i, j of a KITTI pose file (GT: inv(T_i) T_j).")
     ev.add_argument("--image0", required=True, help="first image")
     ev.add_argument("--image1", required=True, help="second image")
     ev.add_argument("--calib", required=True, metavar="fx,fy,cx,cy|FILE", help="intrinsics (a KITTI calib.txt gives P0)")
@@ -200,24 +255,46 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _pipeline_config(args):
-    from mona_vo.config import load_config, parse_set_options
-    from mona_vo.presets import PRESETS
+def _merge_shared(args) -> None:
+    """Fold the options typed before the command into those after it (see _SHARED, _CONFIG)."""
+    for name in _SHARED + _CONFIG:
+        top = getattr(args, "top_" + name, None)
+        if hasattr(args, "top_" + name):
+            delattr(args, "top_" + name)
+        if top is None:
+            continue
+        if name in _CONFIG and not getattr(args, "takes_config", False):
+            cmd = " ".join(c for c in (args.command, getattr(args, "eval_command", None)) if c)
+            raise ConfigError(f"--{name}: '{cmd or 'mona-vo'}' takes no config options")
+        if name == "preset" and args.command == "demo":
+            raise ConfigError("--preset before 'demo' is the speed preset, which demo does not take; "
+                              "its scene preset goes after it: mona-vo demo --preset NAME")
+        if name == "set":
+            args.set = top + getattr(args, "set", [])
+        elif not hasattr(args, name):
+            setattr(args, name, top)
+    args.quiet = getattr(args, "quiet", False)
+    args.verbose = getattr(args, "verbose", False)
+    if args.quiet and args.verbose:
+        raise ConfigError("-q/--quiet and -v/--verbose exclude each other")
+
+
+def _pipeline_config(args, *, speed_preset: bool = True):
+    """The run's PipelineConfig: defaults, then --preset, then --config, then the options that
+    name one key (--prompt, --device, --weights, --refine), then --set. Checked once, at the end.
+    ``speed_preset`` False: the command's --preset is something else (demo's scene)."""
+    from mona_vo.config import apply_overrides, load_config, parse_set_options
     from mona_vo.pipeline import PipelineConfig
 
-    overrides = dict(PRESETS[getattr(args, "preset", "default")])
-    if getattr(args, "prompt", None):
-        overrides["masks.prompt"] = args.prompt
-    if getattr(args, "device", "cpu") != "cpu":
-        overrides["masks.device"] = args.device
-        overrides["vo.tracker_device"] = args.device
-    if getattr(args, "weights", None):
-        overrides["masks.weights"] = args.weights
-        overrides["vo.tracker_checkpoint"] = args.weights
-    if getattr(args, "refine", None):
-        overrides["vo.refine"] = args.refine
-    cfg = load_config(PipelineConfig, None, overrides)
-    return load_config(cfg, getattr(args, "config", None), parse_set_options(getattr(args, "set", [])))
+    preset = (getattr(args, "preset", None) if speed_preset else None) or "default"
+    base = apply_overrides(PipelineConfig(), PRESETS[preset])
+    overrides = {}
+    for option, key in (("prompt", "masks.prompt"), ("device", "device"), ("weights", "weights"),
+                        ("refine", "vo.refine")):
+        if getattr(args, option, None) is not None:
+            overrides[key] = getattr(args, option)
+    overrides.update(parse_set_options(getattr(args, "set", None)))
+    return load_config(base, getattr(args, "config", None), overrides)
 
 
 def _cmd_run(args) -> int:
@@ -242,6 +319,20 @@ def _cmd_masks(args) -> int:
     return 0
 
 
+def _check_scene(preset: str, seed: int, frames: int, width: int, height: int, option: str) -> None:
+    """The generator's own check of the scene options, as a one-line error naming the option."""
+    from data_tools.synthetic import SceneConfig
+
+    options = {"preset": option, "seed": "--seed", "n_frames": "--frames", "width": "--size",
+               "height": "--size"}
+    try:
+        SceneConfig(width=width, height=height, n_frames=frames, preset=preset, seed=seed)
+    except ValueError as exc:
+        text = str(exc)
+        key = text.split(":")[0].replace("SceneConfig.", "")
+        raise ConfigError(f"{options.get(key, key)}: {text.partition(': ')[2] or text}") from None
+
+
 def _cmd_batch(args) -> int:
     from mona_vo.batch import RunOptions, batch_config_from_sets, run_batch, split_batch_sets
 
@@ -258,32 +349,36 @@ def _cmd_batch(args) -> int:
     count = {s: sum(r.get("status") == s for r in rows) for s in ("ok", "skipped", "failed")}
     usable = sum(bool(r.get("usable")) for r in rows)
     print(f"{len(rows)} inputs: {count['ok']} ok, {count['skipped']} skipped, {count['failed']} failed; "
-          f"{usable} usable; {result.seconds:.1f} s; wrote {result.out_dir}/batch.csv and index.html")
+          f"{usable} usable; {result.seconds:.1f} s (Ray start {result.ray_start_seconds:.1f} s); "
+          f"wrote {result.out_dir}/batch.csv and index.html")
     for r in result.failed:
         print(f"  failed {r['name']}: {r.get('reason')}")
     return 1 if result.failed else 0
 
 
 def _cmd_demo(args) -> int:
+    import tempfile
+
     from mona_vo.run import demo
 
     w, h = _parse_size(args.size)
-    out = demo(args.out, preset=args.preset, seed=args.seed, n_frames=args.frames, width=w,
-               height=h, progress=not args.quiet)
+    _check_scene(args.preset, args.seed, args.frames, w, h, "--preset")
+    config = _pipeline_config(args, speed_preset=False)
+    out_dir = args.out or tempfile.mkdtemp(prefix="mona-vo-demo-")
+    out = demo(out_dir, preset=args.preset, seed=args.seed, n_frames=args.frames, width=w,
+               height=h, config=config, progress=not args.quiet)
     print(f"synthetic '{out['preset']}' scene, seed {out['seed']}, {out['frames']} frames "
           f"{out['size'][0]}x{out['size'][1]}, camera path {out['path_length']:.2f} m")
     for variant, label in (("none", "no masks"), ("mona", "MONA masks"), ("gt", "GT masks")):
         r = out["results"][variant]
         print(f"  {label:11s} ATE {r['ate']:.4f} m = {r['ate_percent_of_path']:.3f} % of path   "
               f"RPE {r['rpe_trans']:.4f} m / {r['rpe_rot_deg']:.3f} deg   {r['frames_per_second']:.1f} frames/s")
-    if out["out_dir"]:
-        print(f"runs kept in {out['out_dir']}")
+    print(f"outputs in {out['out_dir']}: input/ (frames, GT masks and poses), none/, mona/, gt/ (one run each)")
+    print(f"open {out['out_dir']}/mona/trajectory.png (the MONA-masked trajectory against GT)")
     return 0
 
 
 def _parse_size(text: str) -> tuple[int, int]:
-    from mona_vo.errors import ConfigError
-
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
@@ -298,7 +393,11 @@ def _cmd_bench(args) -> int:
     from eval.vo_bench import parse_seeds
 
     w, h = _parse_size(args.size)
-    rows = bench(args.presets.split(","), parse_seeds(args.seeds), n_frames=args.frames, width=w,
+    presets = [s.strip() for s in args.presets.split(",") if s.strip()]
+    seeds = parse_seeds(args.seeds)
+    for preset in presets or [""]:
+        _check_scene(preset, seeds[0], args.frames, w, h, "--presets")
+    rows = bench(presets, seeds, n_frames=args.frames, width=w,
                  height=h, config=_pipeline_config(args), peer=not args.no_peer,
                  on_row=lambda r: print(format_row(r), flush=True))
     print()
@@ -360,18 +459,40 @@ def _print_summary(rows) -> None:
         print(f"  {r['sequence']} [{r['variant']}]: {r.get('status')}")
 
 
+def _check_workers(workers: int) -> None:
+    if workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {workers}")
+
+
+def _cmd_config(args) -> int:
+    from mona_vo.config import to_yaml
+
+    cfg = _pipeline_config(args)
+    text = (f"# mona-vo {__version__} configuration: every key, its meaning and [its allowed values].\n"
+            f"# Load it with --config FILE (then --set KEY=VALUE overrides single keys).\n"
+            + to_yaml(cfg))
+    if args.out:
+        from data_tools.atomic import write_text_atomic
+
+        write_text_atomic(args.out, text)
+        print(f"wrote {args.out}")
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
 def _cmd_eval_sintel(args) -> int:
     from eval.datasets import sintel_sequences
     from eval.harness import evaluate, parse_variants
 
+    config = _pipeline_config(args)
+    _check_workers(args.workers)
     variants = parse_variants(args.variants)
     if "gt" in variants and not args.masks_root:
-        from mona_vo.errors import ConfigError
-
         raise ConfigError("variant 'gt' needs --masks-root (folder of <seq>/frame_XXXX.png masks)")
     seqs = sintel_sequences(args.root, pass_=args.pass_, masks_root=args.masks_root,
                             names=args.seqs.split(",") if args.seqs else None)
-    rows = evaluate(seqs, variants, args.out, config=_pipeline_config(args), workers=args.workers, address=args.address,
+    rows = evaluate(seqs, variants, args.out, config=config, workers=args.workers, address=args.address,
                     extra_hash={"dataset": "sintel", "pass": args.pass_}, progress=not args.quiet)
     _print_summary(rows)
     print(f"wrote {args.out}/results.md")
@@ -383,14 +504,14 @@ def _cmd_eval_tum(args) -> int:
     from eval.datasets import tum_sequences
     from eval.harness import evaluate, parse_variants
 
+    config = _pipeline_config(args)
+    _check_workers(args.workers)
     variants = parse_variants(args.variants)
     if "gt" in variants:
-        from mona_vo.errors import ConfigError
-
         raise ConfigError("TUM-layout folders carry no moving-object masks: variant 'gt' is not available")
     calib = parse_calibration(args.calib) if args.calib else None
     seqs = tum_sequences(args.root, calib=calib)
-    rows = evaluate(seqs, variants, args.out, config=_pipeline_config(args), workers=args.workers, address=args.address,
+    rows = evaluate(seqs, variants, args.out, config=config, workers=args.workers, address=args.address,
                     extra_hash={"dataset": "tum"}, progress=not args.quiet)
     _print_summary(rows)
     print(f"wrote {args.out}/results.md")
@@ -408,7 +529,6 @@ def _cmd_eval_flow(args) -> int:
 
 def _cmd_eval_two_view(args) -> int:
     from eval.two_view_eval import evaluate_two_view
-    from mona_vo.errors import ConfigError
 
     try:
         rows = tuple(int(v) for v in args.gt_rows.split(","))
@@ -428,12 +548,13 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
     if args.command is None or (args.command == "eval" and args.eval_command is None):
         parser.print_help() if args.command is None else parser.parse_args([args.command, "--help"])
-        return 2
+        return 1
     try:
+        _merge_shared(args)
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                            format="%(levelname)s %(name)s: %(message)s")
         return args.func(args)
     except MonaVoError as exc:
         print(f"mona-vo: error: {exc}", file=sys.stderr)

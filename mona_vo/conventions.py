@@ -97,6 +97,11 @@ def pose_from_tum_row(row) -> tuple[float, np.ndarray]:
     return float(t), make_pose(rotation_from_quat_wxyz([qw, qx, qy, qz]), [tx, ty, tz])
 
 
+# Horizontal field of view guessed for uncalibrated video, degrees (typical of phone and action
+# cameras). Runs take it from PipelineConfig's `assumed_hfov_deg`; this is the library fallback.
+DEFAULT_HFOV_DEG = 60.0
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Pinhole intrinsics in pixels; principal point in the integer-centre pixel convention."""
@@ -117,7 +122,7 @@ class Intrinsics:
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
 
     @classmethod
-    def default_for(cls, width: int, height: int, fov_deg: float = 60.0) -> "Intrinsics":
+    def default_for(cls, width: int, height: int, fov_deg: float = DEFAULT_HFOV_DEG) -> "Intrinsics":
         """A focal guess for uncalibrated video: horizontal field of view ``fov_deg`` (typical of
         phone and action cameras), principal point at the image centre."""
         f = 0.5 * width / np.tan(np.radians(fov_deg) / 2.0)

@@ -53,6 +53,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from mona_vo.box_filter import count_points_in_boxes
+from mona_vo.config import check_fields, setting
 from mona_vo.errors import ConfigError
 from mona_vo.registry import Registry
 
@@ -179,49 +180,27 @@ class Detector(ABC):
 class MotionDetectorConfig:
     """Settings of the ``motion`` detector (thresholds relative to the frame's motion_theta)."""
 
-    threshold_factor: float = 1.0   # a pixel is moving where motion_map > factor * motion_theta
-    open_px: int = 1                # opening radius, analysis pixels (removes specks)
-    close_px: int = 2               # closing radius, analysis pixels (fills holes, joins parts)
-    min_area_frac: float = 0.0015   # components smaller than this fraction of the image: dropped
-    box_margin_frac: float = 0.1    # each box grows by this fraction of its size on every side
-    max_boxes: int = 12             # at most this many boxes, the highest-scoring ones
-    peak_frac: float = 0.25         # a region keeps its pixels above this x its 95th percentile
-    point_link_frac: float = 0.08   # dynamic points closer than this x the image diagonal group
-    point_min_count: int = 5        # a group of fewer dynamic points proposes no box (count)
-    point_pad_frac: float = 0.02    # a group's box grows by this x the image diagonal per side
-    point_min_share: float = 0.5    # ... and only when at least this share of the tracked points
+    threshold_factor: float = setting(1.0, gt=0)  # a pixel is moving where motion_map > factor * motion_theta
+    open_px: int = setting(1, ge=0)  # opening radius, analysis pixels (removes specks)
+    close_px: int = setting(2, ge=0)  # closing radius, analysis pixels (fills holes, joins parts)
+    min_area_frac: float = setting(0.0015, ge=0, lt=1)  # components smaller than this fraction of the image: dropped
+    box_margin_frac: float = setting(0.1, ge=0)  # each box grows by this fraction of its size on every side
+    max_boxes: int = setting(12, ge=1)  # at most this many boxes, the highest-scoring ones
+    peak_frac: float = setting(0.25, ge=0, lt=1)  # a region keeps its pixels above this x its 95th percentile
+    point_link_frac: float = setting(0.08, ge=0)  # dynamic points closer than this x the image diagonal group
+    point_min_count: int = setting(5, ge=1)  # a group of fewer dynamic points proposes no box (count)
+    point_pad_frac: float = setting(0.02, ge=0)  # a group's box grows by this x the image diagonal per side
+    point_min_share: float = setting(0.5, ge=0, le=1)  # ... and only when at least this share of the tracked points
                                     # in the group's extent are dynamic (a mover's are, mostly)
-    point_min_strength: float = 3.0  # ... and the group's median residual is at least this x
+    point_min_strength: float = setting(3.0, ge=0)  # ... and the group's median residual is at least this x
                                     # theta_t
-    prior_min_support: int = 1      # a component of the prior mask proposes a box when it holds
+    prior_min_support: int = setting(1, ge=0)  # a component of the prior mask proposes a box when it holds
                                     # this many dynamic points (0: always)
-    merge_overlap: float = 0.5      # boxes whose intersection exceeds this share of the smaller
+    merge_overlap: float = setting(0.5, gt=0, le=1)  # boxes whose intersection exceeds this share of the smaller
                                     # box are merged into their union (1: never)
 
     def validate(self) -> None:
-        if self.threshold_factor <= 0:
-            raise ConfigError("motion.threshold_factor must be > 0")
-        if self.open_px < 0 or self.close_px < 0:
-            raise ConfigError("motion.open_px and motion.close_px must be >= 0")
-        if not 0 <= self.min_area_frac < 1:
-            raise ConfigError("motion.min_area_frac must be in [0, 1)")
-        if self.box_margin_frac < 0:
-            raise ConfigError("motion.box_margin_frac must be >= 0")
-        if self.max_boxes < 1:
-            raise ConfigError("motion.max_boxes must be >= 1")
-        if not 0 <= self.peak_frac < 1:
-            raise ConfigError("motion.peak_frac must be in [0, 1)")
-        if self.point_min_strength < 0:
-            raise ConfigError("motion.point_min_strength must be >= 0")
-        if not 0 <= self.point_min_share <= 1:
-            raise ConfigError("motion.point_min_share must be in [0, 1]")
-        if self.point_link_frac < 0 or self.point_pad_frac < 0 or self.point_min_count < 1:
-            raise ConfigError("motion.point_link_frac and point_pad_frac must be >= 0, "
-                              "point_min_count >= 1")
-        if self.prior_min_support < 0:
-            raise ConfigError("motion.prior_min_support must be >= 0")
-        if not 0 < self.merge_overlap <= 1:
-            raise ConfigError("motion.merge_overlap must be in (0, 1]")
+        check_fields(self, 'masks.motion.')
 
 
 def _disk(radius: int) -> np.ndarray:

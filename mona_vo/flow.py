@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from mona_vo.config import check_fields, setting
 from mona_vo.errors import ConfigError
 from mona_vo.registry import Registry
 from mona_vo.tracking import to_gray
@@ -154,18 +155,12 @@ def forward_warp_mask(mask: np.ndarray, flow: np.ndarray) -> np.ndarray:
 class DISFlowConfig:
     """Settings of the ``dis`` flow back end."""
 
-    preset: str = "medium"     # OpenCV DIS preset: ultrafast | fast | medium (see the table above)
-    scale: float = 0.5         # flow computed at this fraction of the input size, in (0, 1]
-    min_width: int = 64        # the reduced image is never narrower than this, pixels
+    preset: str = setting("medium", choices=tuple(DIS_PRESETS))  # OpenCV DIS preset: ultrafast | fast | medium (see the table above)
+    scale: float = setting(0.5, gt=0, le=1)  # flow computed at this fraction of the input size, in (0, 1]
+    min_width: int = setting(64, ge=8)  # the reduced image is never narrower than this, pixels
 
     def validate(self) -> None:
-        if self.preset not in DIS_PRESETS:
-            raise ConfigError(f"dis.preset '{self.preset}' unknown; choose one of: "
-                              f"{', '.join(DIS_PRESETS)}")
-        if not 0.0 < self.scale <= 1.0:
-            raise ConfigError(f"dis.scale must be in (0, 1], got {self.scale}")
-        if self.min_width < 8:
-            raise ConfigError(f"dis.min_width must be at least 8 pixels, got {self.min_width}")
+        check_fields(self, 'masks.dis.')
 
 
 @FLOWS.register("dis")

@@ -132,7 +132,8 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "masks": masks or "none",
         "mean_mask_coverage": float(result.mask_coverage.mean()) if result.n_frames else 0.0,
         "calibration": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
-                        "source": "given" if calib_given else "60-degree field-of-view guess",
+                        "source": "given" if calib_given else
+                                  f"{config.assumed_hfov_deg:g}-degree field-of-view guess",
                         "focal_used": vo.focal},
         "seconds": per_stage,
         "frames_per_second": {k: round(v, 2) for k, v in fps.items() if v is not None},
@@ -175,7 +176,9 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
         bar, update = _progress_bar(len(source), "mona-vo masks", progress)
         t0 = time.perf_counter()
         try:
-            for n, mf in enumerate(compute_masks(remember(source), config.masks), start=1):
+            guess = config.guessed_intrinsics(source.width, source.height)
+            for n, mf in enumerate(compute_masks(remember(source), config.masks, guess,
+                                                 **config.masker_backends()), start=1):
                 outputs.add_mask(names.pop(mf.index), mf.mask)
                 coverage.append(float(mf.mask.mean()))
                 update(n)
@@ -186,7 +189,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
         report = {"input": str(input_path), "frames": len(coverage), "seconds": round(seconds, 3),
                   "frames_per_second": round(len(coverage) / seconds, 2) if seconds > 0 else None,
                   "mean_mask_coverage": float(np.mean(coverage)) if coverage else 0.0,
-                  "config": to_dict(config.masks)}
+                  "config": to_dict(config)}
         outputs.commit_masks("masks_report.json", report)
     return report
 

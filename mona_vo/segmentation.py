@@ -48,6 +48,7 @@ import numpy as np
 
 from mona_vo.detection import (Boxes, FrameContext, box_pixel_ranges, group_points,
                                moving_region_mask)
+from mona_vo.config import check_fields, setting
 from mona_vo.errors import ConfigError
 from mona_vo.registry import Registry
 
@@ -75,52 +76,31 @@ class Segmenter(ABC):
 class GrabCutConfig:
     """Settings of the ``grabcut`` segmenter."""
 
-    method: str = "grabcut"          # grabcut (colour + motion) | motion (moving pixels only)
-    work_width: int = 256            # segmentation resolution: image width in pixels
-    iterations: int = 1              # GrabCut iterations per region (2 measured no better)
-    context_margin_frac: float = 0.25  # ring around a box used as background, fraction of size
-    fg_factor: float = 1.0           # probable foreground where motion > fg_factor * motion_theta
-    peak_frac: float = 0.25          # ... and > peak_frac x the box's 95th-percentile motion
-    point_radius_frac: float = 0.025  # points: reach of a point prompt, fraction of the diagonal
-    point_link_frac: float = 0.08    # points closer than this (fraction of diagonal) group
-    prior_seed: bool = True          # boxes: the previous mask carried here seeds the foreground
-    point_seed_frac: float = 0.012   # boxes: disks of this radius (fraction of the diagonal) on
+    method: str = setting("grabcut", choices=("grabcut", "motion"))  # grabcut (colour + motion) | motion (moving pixels only)
+    work_width: int = setting(256, ge=16)  # segmentation resolution: image width in pixels
+    iterations: int = setting(1, ge=1)  # GrabCut iterations per region (2 measured no better)
+    context_margin_frac: float = setting(0.25, ge=0)  # ring around a box used as background, fraction of size
+    fg_factor: float = setting(1.0, gt=0)  # probable foreground where motion > fg_factor * motion_theta
+    peak_frac: float = setting(0.25, ge=0, lt=1)  # ... and > peak_frac x the box's 95th-percentile motion
+    point_radius_frac: float = setting(0.025, gt=0)  # points: reach of a point prompt, fraction of the diagonal
+    point_link_frac: float = setting(0.08, ge=0)  # points closer than this (fraction of diagonal) group
+    prior_seed: bool = setting(True)  # boxes: the previous mask carried here seeds the foreground
+    point_seed_frac: float = setting(0.012, ge=0)  # boxes: disks of this radius (fraction of the diagonal) on
                                      # the dynamic points inside a box seed its foreground
-    refine_radius_px: int = 8        # guided-filter radius moving the upsampled mask edge onto
+    refine_radius_px: int = setting(8, ge=0)  # guided-filter radius moving the upsampled mask edge onto
                                      # image edges, full-resolution pixels (0: off)
-    refine_eps: float = 0.01         # its ridge, (grey level / 255)^2: edges weaker than about
+    refine_eps: float = setting(0.01, gt=0)  # its ridge, (grey level / 255)^2: edges weaker than about
                                      # sqrt(eps) x 255 grey levels do not move the mask edge
-    dilate_px: int = 2               # final mask dilation, full-resolution pixels
-    max_regions: int = 8             # at most this many prompt regions are segmented
-    min_moving_frac: float = 0.02    # a box with fewer moving pixels than this share is segmented
+    dilate_px: int = setting(2, ge=0)  # final mask dilation, full-resolution pixels
+    max_regions: int = setting(8, ge=1)  # at most this many prompt regions are segmented
+    min_moving_frac: float = setting(0.02, ge=0, le=1)  # a box with fewer moving pixels than this share is segmented
                                      # by colour from a centred rectangle (a box means an object)
-    seed: int = 0                    # OpenCV RNG seed set before each GrabCut (reproducible)
-    min_keep_frac: float = 0.3       # GrabCut keeping less than this share of a region's moving
+    seed: int = setting(0, ge=0)  # OpenCV RNG seed set before each GrabCut (reproducible)
+    min_keep_frac: float = setting(0.3, ge=0, le=1)  # GrabCut keeping less than this share of a region's moving
                                      # (points: prompted) pixels is overruled: they are added
 
     def validate(self) -> None:
-        if self.method not in ("grabcut", "motion"):
-            raise ConfigError("grabcut.method must be grabcut or motion")
-        if self.work_width < 16:
-            raise ConfigError("grabcut.work_width must be at least 16 pixels")
-        if self.iterations < 1:
-            raise ConfigError("grabcut.iterations must be >= 1")
-        if not 0 <= self.peak_frac < 1:
-            raise ConfigError("grabcut.peak_frac must be in [0, 1)")
-        if self.context_margin_frac < 0 or self.fg_factor <= 0:
-            raise ConfigError("grabcut.context_margin_frac must be >= 0 and fg_factor > 0")
-        if self.point_seed_frac < 0:
-            raise ConfigError("grabcut.point_seed_frac must be >= 0")
-        if self.point_radius_frac <= 0 or self.point_link_frac < 0:
-            raise ConfigError("grabcut.point_radius_frac must be > 0, point_link_frac >= 0")
-        if not 0 <= self.min_moving_frac <= 1:
-            raise ConfigError("grabcut.min_moving_frac must be in [0, 1]")
-        if not 0 <= self.min_keep_frac <= 1:
-            raise ConfigError("grabcut.min_keep_frac must be in [0, 1]")
-        if self.refine_radius_px < 0 or self.refine_eps <= 0:
-            raise ConfigError("grabcut.refine_radius_px must be >= 0 and refine_eps > 0")
-        if self.dilate_px < 0 or self.max_regions < 1:
-            raise ConfigError("grabcut.dilate_px must be >= 0 and max_regions >= 1")
+        check_fields(self, 'masks.grabcut.')
 
 
 def guided_filter(guide: np.ndarray, src: np.ndarray, radius: int, eps: float,

@@ -114,7 +114,7 @@ def test_masks_command_writes_one_mask_per_frame(mona_vo_exe, small_scene, tmp_p
     assert sum(o > 0 for o in overlaps) >= 6
 
 
-def test_demo_prints_the_three_variants(mona_vo_exe, tmp_path):
+def test_demo_prints_the_three_variants_and_where_its_outputs_are(mona_vo_exe, tmp_path):
     proc = cli(mona_vo_exe, "demo", "--size", "384x164", "--frames", 16, "--out", tmp_path / "d")
     lines = proc.stdout.splitlines()
     assert lines[0].startswith("synthetic 'one-large' scene, seed 5, 16 frames 384x164")
@@ -123,6 +123,9 @@ def test_demo_prints_the_three_variants(mona_vo_exe, tmp_path):
         ate = float(row.split("ATE ")[1].split(" m")[0])
         assert 0 <= ate < 10
     assert (tmp_path / "d" / "mona" / "trajectory.txt").exists()
+    assert lines[-2].startswith(f"outputs in {tmp_path / 'd'}: ")
+    plot = lines[-1].split()[1]
+    assert lines[-1].startswith("open ") and cv2.imread(plot) is not None
 
 
 def test_bench_without_the_peer_reports_every_method(mona_vo_exe, tmp_path):
@@ -133,3 +136,107 @@ def test_bench_without_the_peer_reports_every_method(mona_vo_exe, tmp_path):
     assert [r["method"] for r in rows] == ["mona-vo (none)", "mona-vo (mona)", "mona-vo (gt)"]
     assert all(r["frames_posed"] == 12 for r in rows)
     assert "| method |" in proc.stdout and "peak memory" in proc.stdout
+
+
+# ---------------------------------------------------------------- bad arguments: one line, exit 1
+
+def _src(tmp_path, small_scene):
+    return small_scene[0]
+
+
+BAD_ARGS = [
+    # (argv, words the one line must hold)
+    (["demo", "--preset", "bogus"], ["--preset", "bogus", "one-large"]),
+    (["bench", "--presets", "bogus", "--no-peer"], ["--presets", "bogus"]),
+    (["bench", "--seeds", "two"], ["--seeds", "two"]),
+    (["demo", "--frames", "1"], ["--frames"]),
+    (["run", "{src}", "--out", "{out}", "--set", "vo.keyframe_max_gap=0"], ["vo.keyframe_max_gap", ">= 1"]),
+    (["run", "{src}", "--out", "{out}", "--set", "vo.ba.max_iterations=-1"], ["vo.ba.max_iterations", ">= 1"]),
+    (["run", "{src}", "--out", "{out}", "--set", "masks.dynamic_points.window=1"],
+     ["masks.dynamic_points.window", ">= 2"]),
+    (["run", "{src}", "--out", "{out}", "--set", "vo.grid_sise=3"], ["vo.grid_sise", "vo.grid_size"]),
+    (["run", "{src}", "--out", "{out}", "--config", "{missing}"], ["not found"]),
+    (["run", "{src}", "--out", "{out}", "--preset", "bogus"], ["--preset", "bogus"]),
+    (["run", "{src}", "--out", "{out}", "--stride", "x"], ["--stride", "x"]),
+    (["run", "{src}", "--out", "{out}", "--stride", "0"], ["stride"]),
+    (["run", "{src}", "--out", "{out}", "--refine", "maybe"], ["--refine", "maybe"]),
+    (["run", "{src}", "--out", "{out}", "--device", "gpu"], ["'device'", "gpu"]),
+    (["run", "{src}"], ["--out"]),
+    (["run", "{src}", "--out", "{out}", "--bogus"], ["--bogus"]),
+    (["masks", "{src}", "--out", "{out}", "-q", "--set", "masks.prompt=all"], ["masks.prompt", "all"]),
+    (["--set", "vo.grid_size=3", "eval", "traj", "--gt", "a", "--est", "b"], ["--set", "eval traj"]),
+    (["--preset", "fast", "demo"], ["--preset", "demo"]),
+    (["eval", "sintel", "--root", "{src}", "--out", "{out}", "--workers", "0"], ["--workers"]),
+    (["eval", "tum", "--root", "{src}", "--out", "{out}", "--variants", "gt"], ["gt"]),
+    (["eval", "traj", "--gt", "{missing}", "--est", "{missing}"], ["{missing}"]),
+    (["eval", "two-view", "--image0", "a", "--image1", "b", "--calib", "1,1,1,1", "--gt-poses", "p",
+      "--gt-rows", "x"], ["--gt-rows"]),
+    (["config", "--set", "assumed_hfov_deg=200"], ["assumed_hfov_deg", "[10, 170]"]),
+    (["nonsense"], ["nonsense"]),
+]
+
+
+@pytest.mark.parametrize("argv, words", BAD_ARGS, ids=[" ".join(a[:4]) for a, _ in BAD_ARGS])
+def test_bad_arguments_give_one_line_and_exit_1(mona_vo_exe, small_scene, tmp_path, argv, words):
+    fill = {"src": str(small_scene[0]), "out": str(tmp_path / "o"), "missing": str(tmp_path / "missing.yaml")}
+    argv = [a.format(**fill) for a in argv]
+    proc = subprocess.run([mona_vo_exe, *argv], capture_output=True, text=True, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1, proc.stderr
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    for word in words:
+        assert word.format(**fill) in lines[0], lines[0]
+    assert not (tmp_path / "o" / "trajectory.txt").exists()
+
+
+def test_shared_options_go_before_or_after_the_command(mona_vo_exe, small_scene, tmp_path):
+    folder, _ = small_scene
+    a, b = tmp_path / "a", tmp_path / "b"
+    # -q and the config options after the command, then before it: the same run.
+    cli(mona_vo_exe, "run", folder, "--out", a, "--masks", "none", "--max-frames", 12, "--quiet",
+        "--set", "vo.grid_size=12", "--preset", "fast")
+    subprocess.run([mona_vo_exe, "--quiet", "--preset", "fast", "--set", "vo.grid_size=12", "run",
+                    str(folder), "--out", str(b), "--masks", "none", "--max-frames", "12"],
+                   check=True, capture_output=True, timeout=600)
+    assert (a / "trajectory.txt").read_bytes() == (b / "trajectory.txt").read_bytes()
+    ra, rb = (json.loads((d / "report.json").read_text())["config"] for d in (a, b))
+    assert ra == rb and ra["vo"]["grid_size"] == 12 and ra["vo"]["window_keyframes"] == 6
+    # --set before and after the command add up; the one after wins on the same key.
+    proc = subprocess.run([mona_vo_exe, "--set", "vo.grid_size=10", "--set", "vo.refine=none", "config",
+                           "--set", "vo.grid_size=14", "-q"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "  grid_size: 14" in proc.stdout and "  refine: none" in proc.stdout
+    proc = subprocess.run([mona_vo_exe, "masks", str(folder), "--out", str(tmp_path / "m"), "-q",
+                           "--max-frames", "10"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0 and not proc.stderr, proc.stderr    # -q: no progress bar on stderr
+
+
+def test_printed_config_loads_back_and_reproduces_the_default_run(mona_vo_exe, small_scene, tmp_path):
+    folder, _ = small_scene
+    yaml_path = tmp_path / "default.yaml"
+    text = cli(mona_vo_exe, "config").stdout
+    assert "# point tracker of the masks and of the VO" in text and "tracker: lk" in text
+    yaml_path.write_text(text)
+    a, b = tmp_path / "a", tmp_path / "b"
+    common = ["--masks", "none", "--calib", folder / "calib.txt", "--max-frames", 16]
+    cli(mona_vo_exe, "run", folder, "--out", a, *common)
+    cli(mona_vo_exe, "run", folder, "--out", b, "--config", yaml_path, *common)
+    assert (a / "trajectory.txt").read_bytes() == (b / "trajectory.txt").read_bytes()
+    ra, rb = (json.loads((d / "report.json").read_text())["config"] for d in (a, b))
+    assert ra == rb
+
+
+@pytest.mark.parametrize("command", [["run", "x", "--out", "o"], ["eval", "sintel", "--root", "r", "--out", "o"],
+                                     ["eval", "tum", "--root", "r", "--out", "o"]])
+def test_refine_option_is_the_config_key(command):
+    from mona_vo.cli import _merge_shared, _pipeline_config, build_parser
+
+    def config(*extra):
+        args = build_parser().parse_args([*command, *extra])
+        _merge_shared(args)
+        return _pipeline_config(args)
+
+    assert config().vo.refine == "global"
+    assert config("--refine", "none") == config("--set", "vo.refine=none") != config()
+    # An explicit option beats the YAML file; --set beats both.
+    assert config("--refine", "none", "--set", "vo.refine=global").vo.refine == "global"

@@ -454,7 +454,7 @@ BAD_INPUT["checkpoint_missing_sam"] = _checkpoint_case("masks.segmenter=sam", "s
 def _(tmp, src):
     weights = tmp / "weights"
     weights.mkdir()
-    return (["run", src, "--masks", "none", "--set", "vo.tracker=cotracker"],
+    return (["run", src, "--masks", "none", "--set", "tracker=cotracker"],
             [str(weights / "scaled_offline.pth"), "checkpoint"], {"MONA_VO_WEIGHTS": str(weights)})
 
 
