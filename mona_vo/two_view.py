@@ -1,6 +1,7 @@
 """Two-view geometry for initialisation and mapping: relative pose from an essential matrix
-(OpenCV's USAC-MAGSAC five-point RANSAC), triangulation, and a rotation-only fit for footage
-without parallax.
+(:func:`mona_vo.geometry.find_essential`, the estimator MONA uses too), triangulation, a
+rotation-only fit for footage without parallax, and the homography-transfer parallax that tells
+the two apart without trusting the focal length.
 
 Points are matched pixel arrays (N, 2); they are normalised with each view's intrinsics first,
 so the two views may have different calibrations (Sintel's focal length changes per frame).
@@ -13,6 +14,7 @@ import cv2
 import numpy as np
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
+from mona_vo.geometry import find_essential
 
 
 def normalize(pixels: np.ndarray, intr: Intrinsics) -> np.ndarray:
@@ -58,10 +60,10 @@ def relative_pose(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr
         return None
     na, nb = normalize(pts_a, intr_a), normalize(pts_b, intr_b)
     f = 0.5 * (intr_a.fx + intr_a.fy + intr_b.fx + intr_b.fy) / 2.0
-    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.USAC_MAGSAC,
-                                   prob=confidence, threshold=threshold_px / f)
-    if E is None or E.shape != (3, 3):
+    E, inl = find_essential(na, nb, np.eye(3), threshold_px / f, confidence)
+    if E is None:
         return None
+    mask = inl.astype(np.uint8).reshape(-1, 1)
     # The short overload of recoverPose drops points beyond 50 baselines as if they were
     # outliers; with the small parallax of consecutive video frames that is most of them.
     _, R, t, mask_pose, _ = cv2.recoverPose(E, na, nb, np.eye(3), distanceThresh=1e9,
@@ -130,9 +132,36 @@ def rotation_only(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr
     H, mask = cv2.findHomography(nb, na, cv2.USAC_MAGSAC, threshold_px / f)
     if H is None:
         return None
-    U, _, Vt = np.linalg.svd(H)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = -R
-    # H maps b -> a, so for a pure rotation it is R_a_b.
-    return R, mask.ravel() > 0
+    inliers = mask.ravel() > 0
+    if inliers.sum() < 3:
+        return None
+    # H maps b -> a, so for a pure rotation it is R_a_b. The rotation itself is the least-squares
+    # fit of the inliers' rays (Kabsch), not H's nearest rotation: H's extra freedoms absorb
+    # part of the motion that a rotation has to explain.
+    ra, rb = bearings(pts_a[inliers], intr_a), bearings(pts_b[inliers], intr_b)
+    U, _, Vt = np.linalg.svd(ra.T @ rb)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt, inliers
+
+
+def homography_parallax_px(pts_a: np.ndarray, pts_b: np.ndarray, *, threshold_px: float = 2.0
+                           ) -> tuple[float, int]:
+    """Parallax no homography explains, in pixels, between matched (N, 2) pixels of two views.
+
+    A camera that only turns (whatever its focal length) or sees only a far plane maps one view
+    onto the other by a homography; translation in front of depth variation leaves residuals
+    that grow with the baseline. Returns (median transfer residual of the homography's own fit
+    over all points, px; number of points), with no intrinsics involved: (nan, n) when there
+    are fewer than 8 points or the fit fails. Movers inflate it: pass static points."""
+    pa = np.ascontiguousarray(pts_a, np.float64).reshape(-1, 2)
+    pb = np.ascontiguousarray(pts_b, np.float64).reshape(-1, 2)
+    if len(pa) < 8:
+        return float("nan"), len(pa)
+    H, _ = cv2.findHomography(pa, pb, cv2.USAC_MAGSAC, threshold_px)
+    if H is None or H.shape != (3, 3):
+        return float("nan"), len(pa)
+    q = np.concatenate([pa, np.ones((len(pa), 1))], axis=1) @ H.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.linalg.norm(q[:, :2] / q[:, 2:3] - pb, axis=1)
+    r = r[np.isfinite(r)]
+    return (float(np.median(r)) if len(r) else float("nan")), len(pa)

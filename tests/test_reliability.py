@@ -691,8 +691,9 @@ def _angle_deg(R) -> float:
 
 
 def test_very_long_video_keeps_the_vo_state_bounded(street):
-    """660 frames through the VO: observations leave with their keyframe, the landmark map and
-    the live tracks stay at window size, and the process does not grow with the frame count."""
+    """660 frames through the VO: the window, its landmarks and the live tracks stay at window
+    size, every keyframe keeps its observations compactly (for the global refinement), and the
+    process does not grow with the frame count beyond that."""
     from data_tools.synthetic import SceneConfig, SyntheticScene
     from mona_vo.vo import VisualOdometry, VOConfig
 
@@ -701,29 +702,33 @@ def test_very_long_video_keeps_the_vo_state_bounded(street):
     # Forward and back along the street, five times: a long video from 61 rendered frames.
     frames = (loop + loop[-2:0:-1]) * 5 + loop
     assert len(frames) >= 600
-    cfg = VOConfig(grid_size=8, window_keyframes=5)
+    cfg = VOConfig(grid_size=8, window_keyframes=5, refine="none")
     vo = VisualOdometry(cfg, 160, 68, scene.intrinsics)
     sizes, rss = [], []
     for i, image in enumerate(frames):
         vo.step(image, timestamp=float(i))
         if i % 50 == 49:
-            old = [vo.keyframes[k] for k in vo.keyframes if k not in vo.window]
-            assert all(len(kf.ids) == 0 and len(kf.uv) == 0 and kf.mask is None for kf in old)
-            assert len(vo.window) <= cfg.window_keyframes
-            sizes.append((len(vo.landmarks), len(vo.tracker.live().ids), len(vo.bad),
-                          sum(len(vo.keyframes[k].ids) for k in vo.window)))
+            m = vo.map
+            assert len(m.window) <= cfg.window_keyframes
+            window_ids = np.unique(m.window_observations()[1])
+            sizes.append((int(m.landmarks.usable(window_ids).sum()), len(vo.tracker.live().ids),
+                          len(m.window_observations()[1])))
             rss.append(_rss_mb())
     result = vo.finish()
     assert len(result.poses) == len(frames) and np.isfinite(result.poses).all()
     cells = cfg.grid_size ** 2
-    landmarks, live, bad, window_obs = np.max(sizes, axis=0)
-    # Window-sized, not video-sized (measured: about 250 landmarks, 330 live tracks, 100 bad,
-    # 1200 window observations at their largest over 660 frames).
-    assert landmarks < 8 * cells and live < 10 * cells and bad < 5 * cells
+    landmarks, live, window_obs = np.max(sizes, axis=0)
+    # Window-sized, not video-sized.
+    assert landmarks < 8 * cells and live < 10 * cells
     assert window_obs < cfg.window_keyframes * 10 * cells
     first_third = np.max(sizes[: len(sizes) // 3], axis=0)
     assert np.all(np.max(sizes[-len(sizes) // 3:], axis=0) < 3 * first_third + 50)
-    assert rss[-1] - rss[1] < 40, rss  # MB: per-frame poses only, no images or observations
+    # Every keyframe's observations are kept, a bounded number each, about 30 bytes apiece.
+    kf = vo.map.keyframes
+    per_kf = np.diff(kf.obs_start[:kf.n + 1])
+    assert kf.n > 20 and per_kf.min() > 0 and per_kf.max() < 10 * cells
+    assert kf.m * (kf.obs_lm.itemsize + kf.obs_uv.itemsize * 2 + 1) < 2e6
+    assert rss[-1] - rss[1] < 40, rss  # MB: per-frame poses and keyframe observations only
 
 
 def _rss_mb() -> float:

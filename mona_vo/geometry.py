@@ -1,0 +1,70 @@
+"""Geometry shared by the VO and MONA, written once: the essential-matrix estimator, the Cauchy
+dynamic probability and the reprojection residual.
+
+Essential matrix
+    OpenCV's USAC_ACCURATE (GC-RANSAC with local optimisation), fixed seed inside OpenCV's
+    UsacParams, so fits are reproducible. Chosen for both users because it keeps the background
+    under a mover carrying a quarter of the points, where MAGSAC++ settled between the two (see
+    :mod:`mona_vo.dynamic_points`).
+
+Dynamic probability
+    The MONA paper's product of an x and a y Cauchy term, normalised by its peak:
+    ``p = 1 - 1 / ((1 + (rx / s)^2) (1 + (ry / s)^2))`` for a residual vector (rx, ry) of a point
+    whose static residual has Cauchy scale s. p = 0 at zero residual; NaN residuals give 0.
+
+Reprojection
+    ``reprojection_residuals(T_world_cam, X, uv, intr)``: (N, 2) observed minus projected pixels,
+    NaN behind the camera; built on :func:`mona_vo.conventions.reproject`.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from mona_vo.conventions import Intrinsics, reproject
+
+ESSENTIAL_METHOD = cv2.USAC_ACCURATE
+
+
+def find_essential(pts_a: np.ndarray, pts_b: np.ndarray, K: np.ndarray, threshold: float,
+                   confidence: float = 0.999, method: int = ESSENTIAL_METHOD
+                   ) -> tuple[np.ndarray | None, np.ndarray]:
+    """Robust essential matrix of (N, 2) matched points with x_b^T E x_a = 0.
+
+    K: 3x3 calibration of the points' units (identity for normalised coordinates, then
+    ``threshold`` is in those units too). Returns (E 3x3 or None, (N,) bool inliers)."""
+    pa = np.ascontiguousarray(pts_a, np.float64).reshape(-1, 2)
+    pb = np.ascontiguousarray(pts_b, np.float64).reshape(-1, 2)
+    if len(pa) < 5:
+        return None, np.zeros(len(pa), bool)
+    E, inl = cv2.findEssentialMat(pa, pb, np.asarray(K, np.float64), method, confidence,
+                                  float(threshold))
+    if E is None or E.shape[0] < 3 or E.shape[1] != 3 or inl is None:
+        return None, np.zeros(len(pa), bool)
+    return E[:3], inl.ravel() > 0
+
+
+def cauchy_dynamic_probability(residual_xy: np.ndarray, scale: float) -> np.ndarray:
+    """(N,) float64 ``1 - 1 / ((1 + (rx/scale)^2) (1 + (ry/scale)^2))`` of (N, 2) residual
+    vectors; NaN residuals give probability 0, infinite ones 1."""
+    r = np.nan_to_num(np.asarray(residual_xy, np.float64).reshape(-1, 2), nan=0.0,
+                      posinf=1e12, neginf=-1e12) / float(scale)
+    return 1.0 - 1.0 / ((1.0 + r[:, 0] ** 2) * (1.0 + r[:, 1] ** 2))
+
+
+def reprojection_residuals(T_world_cam: np.ndarray, points_world: np.ndarray,
+                           pixels: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """(N, 2) float64 observed minus projected pixels of world points (N, 3) seen at (N, 2)
+    pixels from T_world_cam; rows of points at or behind the camera are NaN."""
+    proj, z = reproject(T_world_cam, points_world, intr)
+    r = np.asarray(pixels, np.float64) - proj
+    r[~(z > 1e-9)] = np.nan
+    return r
+
+
+def reprojection_errors(T_world_cam: np.ndarray, points_world: np.ndarray, pixels: np.ndarray,
+                        intr: Intrinsics) -> np.ndarray:
+    """(N,) float64 reprojection error norms in pixels; inf behind the camera."""
+    e = np.linalg.norm(reprojection_residuals(T_world_cam, points_world, pixels, intr), axis=1)
+    e[~np.isfinite(e)] = np.inf
+    return e

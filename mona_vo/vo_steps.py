@@ -1,0 +1,204 @@
+"""The visual odometry's steps as pure functions of arrays: pose by PnP, the dynamic test, the
+keyframe decision, triangulation against the window, pose interpolation and the parallax
+evidence that tells a turning camera from a translating one. :class:`mona_vo.vo.VisualOdometry`
+calls them from a short ``step()``; each is tested alone on synthetic tracks
+(tests/test_vo_steps.py)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from mona_vo.conventions import Intrinsics, invert_pose, make_pose
+from mona_vo.geometry import cauchy_dynamic_probability, reprojection_errors, reprojection_residuals
+from mona_vo.two_view import rotation_parallax_deg, triangulate
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One frame's visible tracks. ids: (N,) int64; uv: (N, 2) float64 pixels x, y; masked: (N,)
+    bool inside the frame's moving-object mask."""
+
+    ids: np.ndarray
+    uv: np.ndarray
+    masked: np.ndarray
+
+    def subset(self, sel: np.ndarray) -> "Observation":
+        return Observation(self.ids[sel], self.uv[sel], self.masked[sel])
+
+
+@dataclass(frozen=True)
+class PoseSettings:
+    threshold_px: float      # RANSAC / final inlier gate, px
+    min_inliers: int         # fewer supporting points: no pose
+    guided_px: float         # first gate around the prediction, px
+    guided_min_share: float  # the predicted pose needs this share of the points within the gate
+    guided_support: float    # and wins unless RANSAC has 1 / this x its support
+
+
+def predict_pose(T_before: np.ndarray | None, T_last: np.ndarray) -> np.ndarray:
+    """Constant-velocity prediction T_last (T_before^-1 T_last); T_last without a second pose."""
+    if T_before is None:
+        return T_last.copy()
+    return T_last @ (invert_pose(T_before) @ T_last)
+
+
+def refine_pose(P: np.ndarray, q: np.ndarray, intr: Intrinsics, T_start: np.ndarray,
+                gate_px: float, s: PoseSettings, min_share: float
+                ) -> tuple[np.ndarray | None, int]:
+    """Levenberg-Marquardt from T_start on the points within gate_px of their projection, then
+    on those within s.threshold_px of the refined pose. P: (N, 3) world; q: (N, 2) px.
+    Returns (T_world_cam or None, inlier count)."""
+    T = T_start
+    n_sel = 0
+    for gate in (gate_px, s.threshold_px):
+        sel = reprojection_errors(T, P, q, intr) < gate
+        n_sel = int(sel.sum())
+        if n_sel < max(s.min_inliers, min_share * len(P)):
+            return None, n_sel
+        Tcw = invert_pose(T)
+        rvec, _ = cv2.Rodrigues(Tcw[:3, :3])
+        rvec, tvec = cv2.solvePnPRefineLM(P[sel], q[sel], intr.K, None, rvec, Tcw[:3, 3].copy())
+        R, _ = cv2.Rodrigues(rvec)
+        T = invert_pose(make_pose(R, tvec.ravel()))
+    return T, n_sel
+
+
+def estimate_pose(P: np.ndarray, q: np.ndarray, intr: Intrinsics, T_guess: np.ndarray | None,
+                  s: PoseSettings) -> tuple[np.ndarray | None, int]:
+    """Pose of a frame from its static tracks with landmarks (P (N, 3) world, q (N, 2) px).
+
+    With a prediction, first a robust refinement from it on the points it explains: a mover that
+    keeps pace with the camera can hold RANSAC's largest consensus set, while under the
+    prediction the static world is the part that still fits; that pose wins unless RANSAC
+    (AP3P minimal samples, no guess needed) finds clearly more support."""
+    if len(P) < max(6, s.min_inliers) or not np.isfinite(P).all():
+        return None, len(P)
+    guided = (None, 0)
+    if T_guess is not None:
+        guided = refine_pose(P, q, intr, T_guess, s.guided_px, s, s.guided_min_share)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        P, q, intr.K, None, iterationsCount=100, reprojectionError=s.threshold_px,
+        confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
+    ransac = (None, 0 if inl is None else len(inl))
+    if ok and inl is not None and len(inl) >= s.min_inliers:
+        R, _ = cv2.Rodrigues(rvec)
+        ransac = refine_pose(P, q, intr, invert_pose(make_pose(R, tvec.ravel())), s.threshold_px,
+                             s, 0.0)
+    if guided[0] is not None and guided[1] >= s.guided_support * ransac[1]:
+        return guided
+    return ransac if ransac[0] is not None else (None, ransac[1])
+
+
+def dynamic_test(P: np.ndarray, q: np.ndarray, intr: Intrinsics, T_world_cam: np.ndarray,
+                 strikes: np.ndarray, scale_px: float, p_max: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Front-end dynamic test of tracks with landmarks: a static point's reprojection residual
+    follows a Cauchy law of scale ``scale_px`` (:func:`mona_vo.geometry.cauchy_dynamic_probability`);
+    p > p_max twice in a row and the track is dynamic. strikes: (N,) previous counts.
+    Returns (new strikes (N,) uint8, dynamic (N,) bool)."""
+    r = reprojection_residuals(T_world_cam, P, q, intr)
+    r[~np.isfinite(r).all(axis=1)] = np.inf
+    p = cauchy_dynamic_probability(r, scale_px)
+    new = np.where(p > p_max, np.minimum(strikes.astype(np.int64) + 1, 255), 0).astype(np.uint8)
+    return new, new >= 2
+
+
+def keyframe_needed(*, gap: int, max_gap: int, parallax_px: float, parallax_min_px: float,
+                    lm_last: int, lm_now: int, min_tracked: float, min_landmarks: int,
+                    falling: float) -> bool:
+    """Keyframe policy. Rotation-free parallax (a fast pan moves every point but adds no
+    baseline, and keyframes without baseline only add scale drift), the share of the last
+    keyframe's landmarks still seen, and a landmark floor that applies only while landmarks are
+    being lost (a pan), not to a scene that simply holds few (there it would make every frame a
+    keyframe)."""
+    if gap >= max_gap:
+        return True
+    base = max(lm_last, 1)
+    return (parallax_px >= parallax_min_px or lm_now < min_tracked * base
+            or (lm_now < falling * base and lm_now < min_landmarks))
+
+
+def rotation_free_parallax_px(uv_a: np.ndarray, uv_b: np.ndarray, intr_a: Intrinsics,
+                              intr_b: Intrinsics, R_a_b: np.ndarray) -> float:
+    """Median parallax (px at view b's focal length) of matched pixels once the rotation R_a_b
+    between the two views is removed; inf with no points."""
+    if not len(uv_a):
+        return float("inf")
+    ang = rotation_parallax_deg(uv_a, uv_b, intr_a, intr_b, R_a_b)
+    return float(np.radians(np.median(ang)) * intr_b.fx)
+
+
+def triangulate_against(views, ids: np.ndarray, uv: np.ndarray, intr: Intrinsics,
+                        T_world_cam: np.ndarray, max_error_px: float, min_angle_deg: float
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """New landmarks for tracks (ids (N,), uv (N, 2)) of a frame at T_world_cam, each from the
+    oldest of ``views`` that saw it (the widest baseline) whose two rays meet within
+    max_error_px at an angle >= min_angle_deg. views: iterable of (T_world_cam, Intrinsics,
+    ids, uv), oldest first. Returns (ids (K,), points (K, 3) world)."""
+    done = np.zeros(len(ids), bool)
+    out_ids, out_X = [], []
+    for T_v, intr_v, ids_v, uv_v in views:
+        _, ia, ib = np.intersect1d(ids_v, ids, return_indices=True)
+        sel = ~done[ib]
+        ia, ib = ia[sel], ib[sel]
+        if not len(ib):
+            continue
+        X, err, ang = triangulate(T_v, T_world_cam, uv_v[ia], uv[ib], intr_v, intr)
+        good = (err < max_error_px) & (ang >= min_angle_deg)
+        out_ids.append(ids[ib][good])
+        out_X.append(X[good])
+        done[ib[good]] = True
+    if not out_ids:
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    return np.concatenate(out_ids), np.concatenate(out_X)
+
+
+def interpolate_pose(Ta: np.ndarray, Tb: np.ndarray, a: float) -> np.ndarray:
+    """Pose a of the way from Ta to Tb (rotation by slerp, centre linearly)."""
+    R = Slerp([0, 1], Rotation.from_matrix([Ta[:3, :3], Tb[:3, :3]]))(a).as_matrix()
+    return make_pose(R, (1 - a) * Ta[:3, 3] + a * Tb[:3, 3])
+
+
+# ------------------------------------------------------------------ parallax evidence
+
+@dataclass(frozen=True)
+class ParallaxEvidence:
+    """Is there translation in the footage? Measured without trusting the focal length.
+
+    The rotation-free parallax is the residual no homography explains between a reference frame
+    and the current one (:func:`mona_vo.two_view.homography_parallax_px`): a turning camera maps
+    one view onto the other by a homography whatever its focal length, translation before depth
+    differences does not. The noise floor is what tracking noise alone gives over the same
+    baseline: the per-frame residuals of consecutive frames, added as a random walk
+    (sqrt of the sum of squares), as frame-to-frame tracking drift adds up. ``ratio`` is the
+    largest parallax / floor seen; the footage translates when it reaches ``translation_ratio``.
+
+    parallax_px, floor_px: at the frame where the ratio was largest; frames: that baseline.
+    """
+
+    parallax_px: float = 0.0
+    floor_px: float = float("nan")
+    ratio: float = 0.0
+    frames: int = 0
+
+    def updated(self, parallax_px: float, floor_px: float, frames: int) -> "ParallaxEvidence":
+        if not (np.isfinite(parallax_px) and np.isfinite(floor_px)) or floor_px <= 0:
+            return self
+        r = parallax_px / floor_px
+        if r > self.ratio:
+            return ParallaxEvidence(float(parallax_px), float(floor_px), float(r), int(frames))
+        return self
+
+    def as_dict(self, translation_ratio: float, map_built: bool) -> dict:
+        moving = self.ratio >= translation_ratio
+        if map_built:
+            conclusion = "translation"
+        else:
+            conclusion = "translation-without-map" if moving else "rotation-only"
+        return {"rotation_free_parallax_px": round(self.parallax_px, 4),
+                "noise_floor_px": None if not np.isfinite(self.floor_px) else round(self.floor_px, 4),
+                "ratio": round(self.ratio, 3), "baseline_frames": self.frames,
+                "translation_ratio": translation_ratio, "conclusion": conclusion}

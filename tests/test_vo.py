@@ -1,0 +1,115 @@
+"""mona_vo.vo end to end on small generated scenes: the mask policy in the factor graph, the
+keyframe graph handed to the global refinement, and rotation-only as a measured conclusion."""
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from data_tools.synthetic import SceneConfig, SyntheticScene
+from mona_vo.conventions import Intrinsics
+from mona_vo.vo import VOConfig, VisualOdometry
+from mona_vo.vo_map import LandmarkFlag
+
+
+@pytest.fixture(scope="module")
+def one_large():
+    scene = SyntheticScene(SceneConfig(width=384, height=164, n_frames=24, preset="one-large", seed=0))
+    rendered = list(scene)
+    return scene, [r.image for r in rendered], [r.mask for r in rendered]
+
+
+def _run(scene, images, masks=None, **cfg):
+    vo = VisualOdometry(VOConfig(**cfg), scene.config.width, scene.config.height, scene.intrinsics)
+    for i, image in enumerate(images):
+        vo.step(image, timestamp=float(i), mask=None if masks is None else masks[i])
+    return vo, vo.finish()
+
+
+def _generous(masks, first=8):
+    """The true masks plus, from frame ``first`` on, a false-positive block over the left
+    quarter of the picture, as an imprecise mask model's: the points already tracked there
+    keep being tracked inside it."""
+    out = []
+    for i, m in enumerate(masks):
+        m = m.copy()
+        if i >= first:
+            m[:, : m.shape[1] // 4] = True
+        out.append(m)
+    return out
+
+
+def test_masked_observations_and_landmarks_leave_the_factor_graph(one_large):
+    scene, images, masks = one_large
+    masks = _generous(masks)
+    assert np.mean([m.mean() for m in masks]) > 0.1
+    vo_m, with_masks = _run(scene, images, masks, refine="none")
+    _, without = _run(scene, images, None, refine="none")
+    # Tracks continue through the masks; the graph leaves out what lies inside one.
+    assert with_masks.drops.get("ba_masked_observations", 0) > 0
+    assert with_masks.drops.get("ba_masked_landmarks", 0) > 0
+    assert with_masks.drops.get("tracks_entering_masks", 0) > 0
+    assert without.drops.get("ba_masked_observations", 0) == 0
+    # No landmark seen inside a mask is usable for a pose, and none supports one now.
+    lm = vo_m.map.landmarks
+    masked_ids = np.flatnonzero(lm.flags & LandmarkFlag.MASKED)
+    assert len(masked_ids) and not lm.usable(masked_ids).any()
+    assert len(with_masks.poses) == len(images) and np.isfinite(with_masks.poses).all()
+
+
+def test_every_keyframe_keeps_its_observations_for_the_global_graph(one_large):
+    scene, images, masks = one_large
+    vo, res = _run(scene, images, _generous(masks), refine="none", window_keyframes=3)
+    g = vo.keyframe_graph()
+    K = vo.map.keyframes.n
+    assert K > 3 and len(g.kf_frames) == K and np.all(np.diff(g.kf_frames) > 0)
+    # Keyframes that left the window still hold observations.
+    assert set(np.unique(g.obs_kf).tolist()) == set(range(K))
+    assert np.isin(g.obs_lm, g.lm_ids).all() and g.obs_masked.any()
+    # Observations of landmarks seen inside a mask are handed over flagged.
+    flagged = (vo.map.landmarks.flags[g.obs_lm] & LandmarkFlag.MASKED) > 0
+    assert np.all(g.obs_masked[flagged])
+    assert res.status.count("keyframe") == int(res.is_keyframe.sum())
+
+
+def test_global_refinement_reattaches_every_frame(one_large):
+    pytest.importorskip("ba.global_ba")
+    scene, images, masks = one_large
+    _, res = _run(scene, images, _generous(masks), refine="global")
+    assert res.refine and res.refine["keyframes"] >= 2
+    assert np.isfinite(res.poses).all() and np.isfinite(res.reprojection_rmse_px)
+    assert res.drops.get("ba_masked_observations", 0) > 0
+
+
+def _pan_frames(n, deg_per_frame, W=320, H=136):
+    rng = np.random.default_rng(4)
+    wide = cv2.resize(rng.integers(0, 255, (3 * H // 4, 3 * W // 4, 3), np.uint8), (3 * W, 3 * H),
+                      interpolation=cv2.INTER_CUBIC)
+    wide = cv2.GaussianBlur(wide, (3, 3), 0)
+    f = float(0.5 * W / np.tan(np.radians(30.0)))
+    K_out = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1.0]])
+    K_src = np.array([[f, 0, (3 * W - 1) / 2], [0, f, (3 * H - 1) / 2], [0, 0, 1.0]])
+    frames, rots = [], []
+    for i in range(n):
+        R = Rotation.from_euler("y", deg_per_frame * i, degrees=True).as_matrix()
+        frames.append(cv2.warpPerspective(wide, K_src @ R @ np.linalg.inv(K_out), (W, H),
+                                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP))
+        rots.append(R)
+    return frames, Intrinsics(f, f, (W - 1) / 2, (H - 1) / 2), rots
+
+
+def test_a_pure_pan_is_concluded_rotation_only_with_its_evidence():
+    frames, intr, rots = _pan_frames(30, 0.7)
+    vo = VisualOdometry(VOConfig(refine="none"), 320, 136, intr)
+    for i, f in enumerate(frames):
+        vo.step(f, timestamp=float(i))
+    res = vo.finish()
+    assert set(res.status) == {"rotation-only"}
+    p = res.parallax
+    assert p["conclusion"] == "rotation-only" and p["ratio"] < p["translation_ratio"]
+    assert p["noise_floor_px"] > 0 and p["baseline_frames"] > 0
+    assert np.abs(res.poses[:, :3, 3]).max() < 1e-9
+    err = [np.degrees(np.linalg.norm(Rotation.from_matrix(T[:3, :3].T @ R).as_rotvec()))
+           for T, R in zip(res.poses, rots)]
+    assert max(err) < 0.1

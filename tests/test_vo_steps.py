@@ -1,0 +1,140 @@
+"""mona_vo.vo_steps and mona_vo.geometry: each VO step alone, on synthetic tracks (milliseconds)."""
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
+from mona_vo.geometry import cauchy_dynamic_probability, find_essential, reprojection_errors
+from mona_vo.two_view import homography_parallax_px, normalize, relative_pose
+from mona_vo.vo_steps import (ParallaxEvidence, PoseSettings, dynamic_test, estimate_pose,
+                              interpolate_pose, keyframe_needed, predict_pose,
+                              rotation_free_parallax_px, triangulate_against)
+
+INTR = Intrinsics(500.0, 500.0, 320.0, 240.0)
+SETTINGS = PoseSettings(2.0, 12, 6.0, 0.3, 0.8)
+
+
+def _points(n=200, seed=0, near=4.0, far=20.0):
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(near, far, n)
+    x = rng.uniform(-0.6, 0.6, n) * z
+    y = rng.uniform(-0.45, 0.45, n) * z
+    return np.stack([x, y, z], 1)
+
+
+def _pose(yaw_deg=0.0, t=(0, 0, 0)):
+    return make_pose(Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix(), t)
+
+
+def _see(T, P, noise=0.0, seed=1):
+    uv, _ = reproject(T, P, INTR)
+    return uv + np.random.default_rng(seed).normal(0, noise, uv.shape)
+
+
+def test_pnp_recovers_the_pose_and_ignores_a_mover_that_keeps_pace():
+    P = _points()
+    T = _pose(3.0, (0.3, 0.0, 0.1))
+    q = _see(T, P, 0.3)
+    # A third of the points ride along with the camera: they sit still in the image.
+    q[:60] = _see(np.eye(4), P[:60], 0.3)
+    T_est, n = estimate_pose(P, q, INTR, predict_pose(_pose(1.0, (0.1, 0, 0.03)), _pose(2.0, (0.2, 0, 0.07))), SETTINGS)
+    assert T_est is not None and 120 <= n <= 145
+    assert np.linalg.norm(T_est[:3, 3] - T[:3, 3]) < 0.01
+
+
+def test_pnp_gives_no_pose_from_too_few_points():
+    P = _points(8)
+    assert estimate_pose(P, _see(np.eye(4), P), INTR, None, SETTINGS)[0] is None
+
+
+def test_predict_pose_continues_constant_velocity():
+    T1, T2 = _pose(1.0, (0.1, 0, 0)), _pose(2.0, (0.2, 0, 0))
+    T3 = predict_pose(T1, T2)
+    assert abs(np.degrees(Rotation.from_matrix(T3[:3, :3]).as_rotvec()[1]) - 3.0) < 1e-9
+    np.testing.assert_allclose(predict_pose(None, T2), T2)
+
+
+def test_cauchy_probability_is_the_papers_product_formula():
+    p = cauchy_dynamic_probability(np.array([[0, 0], [1, 0], [1, 1], [np.nan, 0], [np.inf, 0]]), 1.0)
+    np.testing.assert_allclose(p, [0, 0.5, 0.75, 0, 1.0], atol=1e-12)
+
+
+def test_dynamic_test_needs_two_strikes_in_a_row():
+    P = _points(5)
+    T = np.eye(4)
+    q = _see(T, P)
+    q[0] += 10.0    # far off its landmark: a mover
+    q[1] += 0.5     # tracking noise
+    strikes = np.array([0, 0, 0, 1, 1], np.uint8)
+    s1, dyn1 = dynamic_test(P, q, INTR, T, strikes, 1.44, 0.9)
+    assert s1.tolist() == [1, 0, 0, 0, 0] and not dyn1.any()
+    s2, dyn2 = dynamic_test(P, q, INTR, T, s1, 1.44, 0.9)
+    assert dyn2.tolist() == [True, False, False, False, False]
+
+
+def test_keyframe_policy():
+    base = dict(max_gap=6, parallax_min_px=12.0, min_tracked=0.6, min_landmarks=60, falling=0.9)
+    assert keyframe_needed(gap=6, parallax_px=0, lm_last=200, lm_now=200, **base)
+    assert keyframe_needed(gap=2, parallax_px=13, lm_last=200, lm_now=200, **base)
+    assert keyframe_needed(gap=2, parallax_px=1, lm_last=200, lm_now=100, **base)   # lost 50 %
+    assert not keyframe_needed(gap=2, parallax_px=1, lm_last=200, lm_now=190, **base)
+    # Few landmarks but not falling (a poorly textured room): no keyframe; falling: one.
+    assert not keyframe_needed(gap=2, parallax_px=1, lm_last=50, lm_now=50, **base)
+    assert keyframe_needed(gap=2, parallax_px=1, lm_last=50, lm_now=40, **base)
+
+
+def test_rotation_free_parallax_ignores_pure_rotation():
+    P = _points()
+    Ta, Tb = np.eye(4), _pose(5.0)
+    R_a_b = (invert_pose(Ta) @ Tb)[:3, :3]
+    assert rotation_free_parallax_px(_see(Ta, P), _see(Tb, P), INTR, INTR, R_a_b) < 1e-6
+    Tc = _pose(5.0, (0.3, 0, 0))
+    assert rotation_free_parallax_px(_see(Ta, P), _see(Tc, P), INTR, INTR, R_a_b) > 5.0
+
+
+def test_triangulation_takes_the_oldest_view_and_rejects_short_baselines():
+    P = _points(50)
+    views = [(np.eye(4), INTR, np.arange(50), _see(np.eye(4), P)),
+             (_pose(0, (0.5, 0, 0)), INTR, np.arange(50), _see(_pose(0, (0.5, 0, 0)), P))]
+    T = _pose(0, (0.501, 0, 0))
+    ids, X = triangulate_against(views, np.arange(50), _see(T, P), INTR, T, 2.0, 0.3)
+    assert len(ids) == 50
+    np.testing.assert_allclose(X, P[ids], atol=1e-6)
+    # Only the newest view: a 1 mm baseline gives no ray angle, no landmark.
+    ids2, _ = triangulate_against(views[1:], np.arange(50), _see(T, P), INTR, T, 2.0, 0.3)
+    assert len(ids2) == 0
+
+
+def test_interpolate_pose_halfway():
+    T = interpolate_pose(_pose(0, (0, 0, 0)), _pose(10.0, (1, 0, 0)), 0.5)
+    assert abs(np.degrees(np.linalg.norm(Rotation.from_matrix(T[:3, :3]).as_rotvec())) - 5.0) < 1e-9
+    np.testing.assert_allclose(T[:3, 3], [0.5, 0, 0])
+
+
+def test_essential_matrix_estimator_gives_the_relative_pose():
+    P = _points()
+    Tb = _pose(2.0, (0.4, 0.0, 0.1))
+    ua, ub = _see(np.eye(4), P, 0.2), _see(Tb, P, 0.2, seed=2)
+    E, inl = find_essential(normalize(ua, INTR), normalize(ub, INTR), np.eye(3), 1.0 / 500)
+    assert E is not None and inl.mean() > 0.9
+    rel = relative_pose(ua, ub, INTR, INTR)
+    t = rel.T_a_b[:3, 3]
+    assert np.degrees(np.arccos(t @ Tb[:3, 3] / np.linalg.norm(Tb[:3, 3]))) < 2.0
+    assert reprojection_errors(np.eye(4), P, ua, INTR).max() < 2.0
+
+
+def test_homography_parallax_tells_a_pan_from_a_creep_whatever_the_focal_length():
+    P = _points(300, near=4.0, far=20.0)
+    pan = homography_parallax_px(_see(np.eye(4), P, 0.2), _see(_pose(8.0), P, 0.2, seed=3))[0]
+    creep = homography_parallax_px(_see(np.eye(4), P, 0.2), _see(_pose(1.0, (0.3, 0, 0)), P, 0.2, seed=3))[0]
+    # The same pan through a lens of a very different focal length: still a homography.
+    wide = Intrinsics(250.0, 250.0, 320.0, 240.0)
+    pw = homography_parallax_px(reproject(np.eye(4), P, wide)[0], reproject(_pose(8.0), P, wide)[0])[0]
+    assert pan < 0.5 and pw < 1e-3 and creep > 5 * pan
+
+
+def test_parallax_evidence_keeps_the_strongest_ratio():
+    ev = ParallaxEvidence().updated(1.0, 1.0, 3).updated(6.0, 1.5, 10).updated(2.0, 1.0, 12)
+    assert ev.ratio == 4.0 and ev.frames == 10
+    d = ev.as_dict(3.0, map_built=False)
+    assert d["conclusion"] == "translation-without-map" and d["noise_floor_px"] == 1.5
+    assert ParallaxEvidence().updated(0.5, 1.0, 5).as_dict(3.0, False)["conclusion"] == "rotation-only"
