@@ -88,25 +88,46 @@ def summarise(rows: list[dict], key: str = "preset") -> list[dict]:
     return out
 
 
-def davis_rows(root: str | Path | None = None, sequences: Sequence[str] = ("car-shadow", "dog"),
-               modes: Sequence[str] = ("boxes", "points", "raw-boxes"),
+DAVIS_TUNE = ("car-shadow", "dog", "libby", "parkour")            # the board's tuning part
+DAVIS_VALIDATE = ("blackswan", "cows", "goat", "scooter-black")    # never tuned on
+DAVIS_ROOTS = ("davis2016", "davis2016_more")                       # shared folders, same layout
+
+
+def davis_root_of(sequence: str, data: str | Path | None = None) -> Path:
+    """The shared DAVIS folder holding ``sequence`` (the first of :data:`DAVIS_ROOTS`)."""
+    data = Path(data) if data is not None else SHARED_DATA
+    for name in DAVIS_ROOTS:
+        if (data / name / "JPEGImages" / "480p" / sequence).is_dir():
+            return data / name
+    return data / DAVIS_ROOTS[0]
+
+
+def davis_rows(root: str | Path | None = None,
+               sequences: Sequence[str] = DAVIS_TUNE + DAVIS_VALIDATE,
+               modes: Sequence[str] = ("boxes",),
                config: MaskConfig | None = None, max_frames: int | None = None) -> list[dict]:
-    """One row per (sequence, prompt mode): J and F means over all frames."""
+    """One row per (sequence, prompt mode): J and F means over all frames, the sequence's
+    split ('tune' or 'validate', by the board's DAVIS split) and the mean seconds per frame.
+    ``root``: one DAVIS folder holding every sequence; None looks each one up in the shared
+    data (:func:`davis_root_of`)."""
     from data_tools.davis import DavisSequence
 
-    root = Path(root) if root is not None else SHARED_DATA / "davis2016"
     config = config or MaskConfig()
     rows = []
     for seq in sequences:
-        ds = DavisSequence(root, seq)
+        ds = DavisSequence(Path(root) if root is not None else davis_root_of(seq), seq)
         for mode in modes:
             cfg = dataclasses.replace(config, prompt=mode)
             frames = ((f.index, f.image) for f in ds.frames(max_frames=max_frames))
+            t0 = time.perf_counter()
             preds = [out.mask for out in _masks(frames, cfg)]
+            sec = (time.perf_counter() - t0) / max(len(preds), 1)
             gts = [m for m, _ in zip(ds.masks(), preds)]
             metrics = evaluate_mask_sequence(preds, gts)
-            rows.append({"sequence": seq, "prompt": mode, "frames": metrics.n_frames,
-                         "J": metrics.J_mean, "F": metrics.F_mean})
+            split = "tune" if seq in DAVIS_TUNE else "validate" if seq in DAVIS_VALIDATE else "-"
+            rows.append({"sequence": seq, "split": split, "prompt": mode,
+                         "frames": metrics.n_frames, "J": metrics.J_mean, "F": metrics.F_mean,
+                         "s_per_frame": sec})
     return rows
 
 

@@ -1,0 +1,195 @@
+"""Moving-object evidence accumulated over time: a per-pixel log-odds map with hysteresis.
+
+A mover must not be decided frame by frame: its motion may run along its epipolar lines for a
+few frames (the dense test misses it there), and a patch of flow error or parallax may look like
+motion in one frame. So the masker keeps one map ``L`` (analysis resolution, float32 log-odds
+that the pixel is on a moving object) and changes it by small pure steps, one per frame:
+
+``carry``      the previous map moved into this frame along the optical flow between them
+               (forward splat: every pixel goes where its own flow vector takes it, the max kept
+               where several land; pixels nobody lands on read the map at ``x - u(x)``), so the
+               evidence of a mover travels with it.
+``observe``    this frame's log-likelihood ratio per pixel. Dense motion: ``z = r / theta`` (the
+               residual of the flow against the camera-induced motion over the frame's
+               threshold) gives ``2 log z`` -- the log-odds of the Cauchy dynamic probability
+               ``1 - 1 / (1 + z^2)`` at scale theta, zero at the threshold -- clipped to
+               ``[obs_min, obs_max]``; pixels without a valid residual (0 in the map) observe
+               nothing. Dynamic points (judged over their whole track window, so they see a
+               mover in frames where the dense test does not) add ``point_gain`` times their
+               Cauchy probability within ``point_radius_frac`` of the image diagonal.
+``update``     ``L_t = clip(decay * carry(L_{t-1}) + observe_t, clamp_lo, clamp_hi)``: evidence
+               rises within two or three frames of consistent motion and falls over a few frames
+               without it (a one-frame spike on static ground starts from ``clamp_lo`` and does
+               not reach the seed level).
+``regions``    hysteresis, as Canny's, in space and time: the connected components of
+               ``L > grow`` that hold a pixel of ``L > seed`` or of the previous frame's regions
+               (carried along the flow), and at least ``min_area_frac`` of the map. These are
+               the objects "found and not yet stopped": a new one needs ``seed``, one followed
+               so far only ``grow``.
+
+The masker uses the regions twice: their boxes are prompts (a mover once found stays prompted
+while it is followed) and they bound the segmentation (``bound_px`` around ``L > grow``), so
+GrabCut cannot spill onto background of similar colour where nothing moved.
+
+Pure functions of numpy arrays; the masker holds the one map.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mona_vo.config import check_fields, setting
+from mona_vo.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class EvidenceConfig:
+    """Settings of the accumulated moving-object evidence (module docstring)."""
+
+    enabled: bool = setting(True)  # accumulate evidence and use its regions ('boxes' mode)
+    decay: float = setting(0.8, ge=0, lt=1)  # share of the carried log-odds kept per frame
+    obs_min: float = setting(-0.7, le=0)  # per-frame log-likelihood ratio of the dense test:
+                                  # floor (log-odds units)
+    obs_max: float = setting(2.0, ge=0)  # ... and ceiling (log-odds units)
+    point_gain: float = setting(2.0, ge=0)  # most log-odds a dynamic point adds around it
+    point_strength: float = setting(2.0, ge=1)  # a point adds 2 log(r / (this x theta)),
+                                  # clipped to [0, point_gain] (r its residual, px per frame)
+    point_radius_frac: float = setting(0.02, ge=0)  # reach of a dynamic point, fraction of the
+                                  # image diagonal
+    clamp_lo: float = setting(-3.0, le=0)  # the map stays within [clamp_lo, clamp_hi] (log-odds)
+    clamp_hi: float = setting(6.0, gt=0)   # see clamp_lo
+    seed: float = setting(3.0, gt=0)  # a region needs a pixel above this (log-odds) ...
+    grow: float = setting(1.0, ge=0)  # ... and is the connected pixels above this (log-odds)
+    min_area_frac: float = setting(0.002, ge=0, lt=1)  # regions smaller than this share of the
+                                  # image are dropped
+    join_frac: float = setting(0.03, ge=0)  # parts of one object closer than this (fraction of
+                                  # the diagonal) join before regions are labelled
+    bound_px: int = setting(5, ge=-1)  # segmentation stays within this many analysis pixels of
+                                  # the regions' convex hulls (0: the hulls; -1: no bound)
+
+    def validate(self) -> None:
+        check_fields(self, "masks.evidence.")
+        if not self.clamp_lo <= self.grow <= self.seed <= self.clamp_hi:
+            raise ConfigError("config keys masks.evidence.*: need clamp_lo <= grow <= seed <= "
+                              "clamp_hi")
+
+
+def carry(logodds: np.ndarray, flow: np.ndarray | None, fill: float = 0.0) -> np.ndarray:
+    """(h, w) float32 log-odds of the previous frame moved into this frame along ``flow``
+    ((h, w, 2) float32, previous -> this frame, pixels of the map): forward splat (max where
+    several land), holes read at ``x - u(x)``; ``fill`` everywhere without a flow."""
+    L = np.asarray(logodds, np.float32)
+    if flow is None or flow.shape[:2] != L.shape:
+        return np.full_like(L, fill)
+    h, w = L.shape
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    back = cv2.remap(L, gx - flow[..., 0], gy - flow[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=float(fill))
+    x = np.rint(gx + flow[..., 0]).astype(np.int64).ravel()
+    y = np.rint(gy + flow[..., 1]).astype(np.int64).ravel()
+    ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    flat = np.full(h * w, -np.inf, np.float32)
+    np.maximum.at(flat, y[ok] * w + x[ok], L.ravel()[ok])
+    splat = flat.reshape(h, w)
+    return np.where(np.isfinite(splat), splat, back).astype(np.float32)
+
+
+def observe(motion_map: np.ndarray | None, theta: float, shape: tuple[int, int],
+            points: np.ndarray, residual: np.ndarray, full_width: int,
+            config: EvidenceConfig) -> np.ndarray:
+    """(h, w) float32 log-likelihood ratio of one frame (module docstring).
+
+    motion_map:  (h, w) float32 residual motion, px per frame, or None; 0 = no observation.
+    theta:       the frame's motion threshold, px per frame.
+    points:      (N, 2) float32 full-resolution pixels of the dynamic points.
+    residual:    (N,) their residual motion, px per frame (judged over the track window).
+    full_width:  the image width in pixels (the map is ``w / full_width`` of it).
+    """
+    h, w = shape
+    out = np.zeros((h, w), np.float32)
+    if motion_map is not None and theta > 0:
+        mm = np.asarray(motion_map, np.float32)
+        valid = mm > 0
+        z = np.maximum(mm / float(theta), 1e-6)
+        obs = np.clip(2.0 * np.log(z), config.obs_min, config.obs_max)
+        out[valid] = obs[valid]
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    if config.point_gain > 0 and len(pts):
+        s = w / float(full_width)
+        rad = max(int(round(config.point_radius_frac * np.hypot(w, h))), 1)
+        bump = np.zeros((h, w), np.float32)
+        r = np.asarray(residual, np.float64).reshape(-1)
+        gain = np.clip(2.0 * np.log(np.maximum(r, 1e-9) / (config.point_strength * max(theta, 1e-9))),
+                       0.0, config.point_gain)
+        for (x, y), g in zip(pts, gain):
+            if np.isfinite(x) and np.isfinite(y) and g > 0:
+                c = (int(round((x + 0.5) * s - 0.5)), int(round((y + 0.5) * s - 0.5)))
+                cv2.circle(bump, c, rad, float(g), -1)
+        # Points add to the dense test where it says "static" too: a track judged over its
+        # window sees motion along the epipolar lines that one frame pair does not.
+        out = np.where(bump > 0, np.maximum(out, 0.0) + bump, out)
+    return out
+
+
+def update(carried: np.ndarray, observation: np.ndarray, config: EvidenceConfig) -> np.ndarray:
+    """``clip(decay * carried + observation, clamp_lo, clamp_hi)``, (h, w) float32."""
+    return np.clip(config.decay * np.asarray(carried, np.float32) + observation,
+                   config.clamp_lo, config.clamp_hi).astype(np.float32)
+
+
+def _labels(logodds: np.ndarray, config: EvidenceConfig, follow: np.ndarray | None = None):
+    """Components of ``L > grow`` (parts closer than ``join_frac`` joined) that hold a pixel of
+    ``L > seed`` -- or of the followed regions ``follow`` -- and ``min_area_frac`` of the map:
+    (labels, kept component ids)."""
+    L = np.asarray(logodds, np.float32)
+    grow = (L > config.grow).astype(np.uint8)
+    if not grow.any():
+        return None, []
+    h, w = L.shape
+    r = int(round(config.join_frac * np.hypot(w, h) / 2))
+    joined = grow
+    if r > 0:
+        k = 2 * r + 1
+        joined = cv2.morphologyEx(grow, cv2.MORPH_CLOSE,
+                                  cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(joined, connectivity=8)
+    seeds = L > config.seed
+    if follow is not None and follow.shape == L.shape:
+        seeds |= follow & (L > config.grow)
+    seeded = np.unique(labels[seeds])
+    min_area = config.min_area_frac * L.size
+    keep = [int(k) for k in seeded if k != 0 and stats[k, cv2.CC_STAT_AREA] >= min_area]
+    return labels, keep
+
+
+def regions(logodds: np.ndarray, config: EvidenceConfig,
+            follow: np.ndarray | None = None) -> np.ndarray:
+    """(h, w) bool: the hysteresis regions of the map (module docstring), parts of one object
+    closer than ``join_frac`` of the diagonal joined. ``follow`` (h, w) bool: the previous
+    frame's regions carried here; a region followed so far needs only ``L > grow`` to go on
+    (an object once found is followed until its evidence falls, not re-found every frame)."""
+    labels, keep = _labels(logodds, config, follow)
+    if labels is None or not keep:
+        return np.zeros(np.shape(logodds), bool)
+    return np.isin(labels, keep)
+
+
+def bound(logodds: np.ndarray, config: EvidenceConfig,
+          follow: np.ndarray | None = None) -> np.ndarray | None:
+    """(h, w) bool where segmentation may put mask pixels: the convex hull of each region (a
+    mover's textureless middle may hold little evidence; its outline does), grown by
+    ``bound_px``; None when unbounded (``bound_px < 0``)."""
+    if config.bound_px < 0:
+        return None
+    labels, keep = _labels(logodds, config, follow)
+    m = np.zeros(np.shape(logodds), np.uint8)
+    for k in keep:
+        ys, xs = np.nonzero(labels == k)
+        hull = cv2.convexHull(np.stack([xs, ys], axis=1).astype(np.int32))
+        cv2.fillConvexPoly(m, hull, 1)
+    if config.bound_px > 0 and m.any():
+        k = 2 * config.bound_px + 1
+        m = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    return m > 0

@@ -1,0 +1,114 @@
+"""Accumulated moving-object evidence: hysteresis over time, carried along the flow, bounds."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mona_vo import mask_evidence as ev
+from mona_vo.errors import ConfigError
+from mona_vo.mask_evidence import EvidenceConfig
+
+CFG = EvidenceConfig()
+H, W = 40, 64
+THETA = 1.0
+NO_POINTS = np.zeros((0, 2), np.float32)
+NO_RES = np.zeros(0, np.float32)
+
+
+def _map(block=None, value=4.0, floor=0.3):
+    """Motion map: ``floor`` px/frame everywhere (static, below theta), ``value`` in block."""
+    m = np.full((H, W), floor, np.float32)
+    if block is not None:
+        r0, r1, c0, c1 = block
+        m[r0:r1, c0:c1] = value
+    return m
+
+
+STILL = np.zeros((H, W, 2), np.float32)
+
+
+def _step(L, mmap, flow=STILL, config=CFG):
+    obs = ev.observe(mmap, THETA, (H, W), NO_POINTS, NO_RES, W, config)
+    if L is None:
+        return ev.update(obs, obs, dataclasses.replace(config, decay=0.999))
+    return ev.update(ev.carry(L, flow, 0.0), obs, config)
+
+
+def test_a_one_frame_spike_on_static_ground_is_not_a_region():
+    L = None
+    for _ in range(5):
+        L = _step(L, _map())
+    spike = (10, 20, 10, 20)
+    L = _step(L, _map(spike))
+    assert not ev.regions(L, CFG).any()
+    # ... while the same motion seen in three consecutive frames becomes one.
+    L = _step(_step(L, _map(spike)), _map(spike))
+    assert ev.regions(L, CFG)[12:18, 12:18].all()
+
+
+def test_a_mover_stays_found_for_a_few_frames_without_evidence_then_stops():
+    L = None
+    block = (10, 20, 10, 20)
+    for _ in range(6):
+        L = _step(L, _map(block))
+    found = ev.regions(L, CFG)
+    kept = 0
+    for k in range(10):             # the mover now moves along its epipolar lines: no evidence
+        L = _step(L, _map())
+        found = ev.regions(L, CFG, follow=found)      # still flow: carried in place
+        if found[15, 15]:
+            kept = k + 1
+    assert 2 <= kept <= 6          # followed through a short gap, dropped once it stopped
+    # Not followed (each frame decided alone), the same map loses it sooner.
+    L2 = None
+    for _ in range(6):
+        L2 = _step(L2, _map(block))
+    alone = 0
+    for k in range(10):
+        L2 = _step(L2, _map())
+        if ev.regions(L2, CFG)[15, 15]:
+            alone = k + 1
+    assert alone < kept
+
+
+def test_evidence_travels_with_the_mover_along_the_flow():
+    L = None
+    flow = np.zeros((H, W, 2), np.float32)
+    c0 = 5
+    for k in range(6):
+        L = _step(L, _map((10, 20, c0 + 3 * k, c0 + 3 * k + 10)), flow)
+        flow = np.zeros((H, W, 2), np.float32)
+        flow[10:20, c0 + 3 * k:c0 + 3 * k + 10, 0] = 3.0     # the block moves 3 px right
+    carried = ev.carry(L, flow, 0.0)
+    cols = np.nonzero(carried[15] > CFG.seed)[0]
+    assert cols.min() >= c0 + 18 and cols.max() <= c0 + 18 + 10
+    assert ev.carry(L, None, -1.0).max() == -1.0           # no flow: nothing is carried
+
+
+def test_strong_dynamic_points_add_evidence_weak_ones_do_not():
+    pts = np.array([[32.0, 20.0]], np.float32)
+    strong = ev.observe(None, THETA, (H, W), pts, np.array([8.0], np.float32), W, CFG)
+    weak = ev.observe(None, THETA, (H, W), pts, np.array([1.5], np.float32), W, CFG)
+    assert strong[20, 32] == pytest.approx(CFG.point_gain)
+    assert weak.max() == 0.0       # 1.5 theta: parallax of near static structure, not a mover
+
+
+def test_segmentation_bound_is_the_grown_convex_hull_of_the_regions():
+    L = np.full((H, W), CFG.clamp_lo, np.float32)
+    L[10:30, 10:14] = CFG.clamp_hi          # two arms of one object (an L shape) ...
+    L[26:30, 10:40] = CFG.clamp_hi
+    L[2:5, 55:58] = CFG.grow + 0.5          # ... and an unseeded blob
+    b = ev.bound(L, dataclasses.replace(CFG, bound_px=0))
+    assert b[20, 20]                        # inside the hull, between the arms
+    assert not b[3, 56]                     # never seeded: no segmentation there
+    assert not b[5, 35]                     # outside the hull
+    assert ev.bound(L, dataclasses.replace(CFG, bound_px=-1)) is None
+
+
+def test_bad_evidence_settings_fail_with_the_key():
+    with pytest.raises(ConfigError, match="decay"):
+        EvidenceConfig(decay=1.5).validate()
+    with pytest.raises(ConfigError, match="grow"):
+        EvidenceConfig(grow=4.0, seed=3.0).validate()
