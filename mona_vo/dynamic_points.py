@@ -31,7 +31,7 @@ Camera-induced motion of a frame pair (a, b), from the anchors visible in both
       ``model_threshold_px``.
     * ``F = K^-T E K^-1`` with ``E`` an essential matrix (same estimator, five-point) on the
       anchors normalised by intrinsics ``K`` (given, else a pinhole guess with
-      ``assumed_hfov_deg``). The calibrated model has 5 degrees of freedom instead of F's 7, so a
+      the pipeline's ``assumed_hfov_deg``). The calibrated model has 5 degrees of freedom instead of F's 7, so a
       large mover carrying many anchors cannot pull it into a compromise between two motions
       (measured: it separated the movers of the synthetic scenes and of DAVIS car-shadow clearly
       better than a free F).
@@ -97,8 +97,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from mona_vo.conventions import Intrinsics
+from mona_vo.config import check_fields, setting
+from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
 from mona_vo.errors import ConfigError
+from mona_vo.geometry import cauchy_dynamic_probability, find_essential
 from mona_vo.point_selection import grid_points, random_points, texture_score
 from mona_vo.tracking import Tracker, to_gray
 
@@ -122,66 +124,46 @@ ROBUST_METHODS = {
 class DynamicPointsConfig:
     """Settings of MONA's Dynamic Points Extraction (see the module docstring for the formulas)."""
 
-    n_detection: int = 300            # n: random detection points per window
-    anchor_grid: int = 12             # k: one anchor per cell of a k x k grid (m <= k^2)
-    anchor_score: str = "gradient"    # anchor choice: gradient (paper) | min_eigen (Shi-Tomasi)
-    border_px: int = 8                # no point closer than this to the image border, pixels
-    min_texture_frac: float = 0.1     # detection points need texture >= this x the 90th pct
-    oversample: int = 3               # random candidates drawn per detection point kept
-    window: int = 9                   # L: frames per window (>= 2); masks lag by L - 1 frames
-    min_tracked_frac: float = 0.5     # a window ends early when fewer than this share of its
-                                      # points are still tracked (a fast pan: new points are due)
-    capture_change_px: float = 1.5    # a track whose step jumps by more than this (px, beyond
-    capture_change_frac: float = 0.5  # the common jump) + this x its relative step ends (0: off)
-    alpha: float = 0.02               # theta_t = alpha * m_t (dimensionless)
-    theta_min_px: float = 0.4         # floor of theta_t, pixels per frame
-    noise_factor: float = 4.0         # kappa: theta_t >= kappa * sigma_w (anchors' spread)
-    cauchy_scale_px: float = 0.5      # gamma of the Cauchy model, pixels per frame
-    model_threshold_px: float = 0.5   # inlier threshold of the robust H and E fits, pixels
-    robust_method: str = "usac_accurate"  # usac_accurate | usac_default | magsac | ransac
-    homography_min_ratio: float = 0.6  # H is used when it explains this share of what E does
-    window_homography_frac: float = 0.5  # window model H when this share of its pairs chose H
-    window_model_for_pairs: bool = True  # every pair of a window uses the window's model
-    homography_min_turn_deg: float = 1.3  # the masker's dense map takes a homography window's
-                                      # model only when m_t >= fx tan(this) (a camera turning
-                                      # at least this fast, degrees per frame), else epipolar
-    min_anchors: int = 12             # fewer anchors in a pair: all tracked points fit the model
-    assumed_hfov_deg: float = 60.0    # field of view assumed when no intrinsics are given, degrees
-    seed: int = 0                     # seed of the detection points (with the window's start)
+    n_detection: int = setting(300, ge=0)  # n: random detection points per window
+    anchor_grid: int = setting(12, ge=2)  # k: one anchor per cell of a k x k grid (m <= k^2)
+    anchor_score: str = setting("gradient", choices=("gradient", "min_eigen"))  # anchor choice:
+                                      # gradient (paper) | min_eigen (Shi-Tomasi)
+    border_px: int = setting(8, ge=0)  # no point closer than this to the image border, pixels
+    min_texture_frac: float = setting(0.1, ge=0)  # detection points need texture >= this x the
+                                      # 90th percentile
+    oversample: int = setting(3, ge=1)  # random candidates drawn per detection point kept
+    window: int = setting(9, ge=2)    # L: frames per window; masks lag by L - 1 frames
+    min_tracked_frac: float = setting(0.5, ge=0, le=1)  # a window ends early when fewer than
+                                      # this share of its points are still tracked (a fast
+                                      # pan: new points are due)
+    capture_change_px: float = setting(1.5, ge=0)  # a track whose step jumps by more than this
+                                      # (px, beyond the common jump) + capture_change_frac x
+                                      # its relative step ends
+    capture_change_frac: float = setting(0.5, ge=0)  # see capture_change_px (0: off)
+    alpha: float = setting(0.02, ge=0)  # theta_t = alpha * m_t (dimensionless)
+    theta_min_px: float = setting(0.4, ge=0)  # floor of theta_t, pixels per frame
+    noise_factor: float = setting(4.0, ge=0)  # kappa: theta_t >= kappa * sigma_w (anchors' spread)
+    cauchy_scale_px: float = setting(0.5, gt=0)  # gamma of the Cauchy model, pixels per frame
+    model_threshold_px: float = setting(0.5, gt=0)  # inlier threshold of the robust H and E
+                                      # fits, pixels
+    robust_method: str = setting("usac_accurate", choices=tuple(ROBUST_METHODS))  # robust
+                                      # estimator of those fits
+    homography_min_ratio: float = setting(0.6, gt=0)  # H is used when it explains this share of
+                                      # what E does
+    window_homography_frac: float = setting(0.5, gt=0, le=1)  # window model H when this share
+                                      # of its pairs chose H
+    window_model_for_pairs: bool = setting(True)  # every pair of a window uses the window's model
+    homography_min_turn_deg: float = setting(1.3, ge=0)  # the masker's dense map takes a
+                                      # homography window's model only when m_t >= fx tan(this)
+                                      # (a camera turning at least this fast, degrees per
+                                      # frame), else epipolar
+    min_anchors: int = setting(12, ge=8)  # fewer anchors in a pair: all tracked points fit the
+                                      # model
+    # The field of view assumed without intrinsics is PipelineConfig's `assumed_hfov_deg`.
+    seed: int = setting(0, ge=0)      # seed of the detection points (with the window's start)
 
     def validate(self) -> None:
-        if self.n_detection < 0:
-            raise ConfigError("dynamic_points.n_detection must be >= 0")
-        if self.min_texture_frac < 0 or self.oversample < 1:
-            raise ConfigError("dynamic_points.min_texture_frac must be >= 0, oversample >= 1")
-        if self.anchor_grid < 2:
-            raise ConfigError("dynamic_points.anchor_grid must be at least 2")
-        if self.anchor_score not in ("gradient", "min_eigen"):
-            raise ConfigError("dynamic_points.anchor_score must be gradient or min_eigen")
-        if self.capture_change_px < 0 or self.capture_change_frac < 0:
-            raise ConfigError("dynamic_points.capture_change_px and capture_change_frac "
-                              "must be >= 0")
-        if self.homography_min_turn_deg < 0:
-            raise ConfigError("dynamic_points.homography_min_turn_deg must be >= 0")
-        if not 0 <= self.min_tracked_frac <= 1:
-            raise ConfigError("dynamic_points.min_tracked_frac must be in [0, 1]")
-        if self.window < 2:
-            raise ConfigError("dynamic_points.window must be at least 2 frames")
-        if self.alpha < 0 or self.theta_min_px < 0 or self.noise_factor < 0:
-            raise ConfigError("dynamic_points.alpha, theta_min_px and noise_factor must be >= 0")
-        if self.robust_method not in ROBUST_METHODS:
-            raise ConfigError(f"dynamic_points.robust_method must be one of: "
-                              f"{', '.join(ROBUST_METHODS)}")
-        if self.cauchy_scale_px <= 0 or self.model_threshold_px <= 0:
-            raise ConfigError("dynamic_points.cauchy_scale_px and model_threshold_px must be > 0")
-        if not 0.0 < self.window_homography_frac <= 1.0:
-            raise ConfigError("dynamic_points.window_homography_frac must be in (0, 1]")
-        if not 0.0 < self.homography_min_ratio:
-            raise ConfigError("dynamic_points.homography_min_ratio must be > 0")
-        if self.min_anchors < 8:
-            raise ConfigError("dynamic_points.min_anchors must be at least 8")
-        if not 10.0 <= self.assumed_hfov_deg <= 170.0:
-            raise ConfigError("dynamic_points.assumed_hfov_deg must be in [10, 170] degrees")
+        check_fields(self, "masks.dynamic_points.")
 
 
 # --------------------------------------------------------------------------- camera-induced motion
@@ -315,7 +297,8 @@ def fit_camera_motion(pts_a: np.ndarray, pts_b: np.ndarray, intrinsics: Intrinsi
     if H is None or H.shape != (3, 3):
         H = None
     K = intrinsics.K
-    E, inl = cv2.findEssentialMat(pa, pb, K, flag, 0.999, threshold_px)
+    E, inl_ok = find_essential(pa, pb, K, threshold_px, 0.999, flag)   # mona_vo.geometry
+    inl = inl_ok.astype(np.uint8).reshape(-1, 1)
     F = H_inf = epipole = None
     if E is not None and E.shape[0] >= 3 and E.shape[1] == 3:
         E = E[:3]
@@ -371,12 +354,8 @@ def residual_map(motion: CameraMotion, flow: np.ndarray,
 
 # --------------------------------------------------------------------------- probability, threshold
 
-def cauchy_dynamic_probability(residual_xy: np.ndarray, scale: float) -> np.ndarray:
-    """(N,) float64 ``1 - 1 / ((1 + (rx/scale)^2) (1 + (ry/scale)^2))`` of (N, 2) residual
-    vectors; NaN residuals give probability 0."""
-    r = np.nan_to_num(np.asarray(residual_xy, np.float64).reshape(-1, 2), nan=0.0,
-                      posinf=1e12, neginf=-1e12) / float(scale)
-    return 1.0 - 1.0 / ((1.0 + r[:, 0] ** 2) * (1.0 + r[:, 1] ** 2))
+# cauchy_dynamic_probability (the paper's product formula) lives in mona_vo.geometry, shared
+# with the VO's dynamic test; imported above.
 
 
 def adaptive_threshold(mean_flow_px: float, alpha: float, theta_min_px: float,
@@ -459,10 +438,10 @@ def turning_fast(mean_flow_px: float, intrinsics: Intrinsics, min_deg: float) ->
     return mean_flow_px >= intrinsics.fx * np.tan(np.radians(min_deg))
 
 
-def default_intrinsics(width: int, height: int, config: DynamicPointsConfig) -> Intrinsics:
-    """Pinhole guess for uncalibrated video: ``config.assumed_hfov_deg``, centred principal
-    point."""
-    return Intrinsics.default_for(width, height, config.assumed_hfov_deg)
+def default_intrinsics(width: int, height: int, hfov_deg: float = DEFAULT_HFOV_DEG) -> Intrinsics:
+    """Pinhole guess for uncalibrated video: horizontal field of view ``hfov_deg`` (the
+    pipeline passes its ``assumed_hfov_deg``), centred principal point."""
+    return Intrinsics.default_for(width, height, hfov_deg)
 
 
 def classify_window(window: TrackWindow, mean_flow_px: np.ndarray, config: DynamicPointsConfig,

@@ -47,6 +47,7 @@ Prompt modes (the paper's ablation, Fig. 3): ``boxes`` (the method: filtered box
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
@@ -55,8 +56,10 @@ import cv2
 import numpy as np
 
 from mona_vo.box_filter import UNIT_RULES, BoxFilterResult, adaptive_box_filter
+from mona_vo.config import check_fields, setting
 from mona_vo.conventions import Intrinsics
-from mona_vo.detection import (DETECTORS, Boxes, Detector, FrameContext, MotionDetectorConfig)
+from mona_vo.detection import (DETECTORS, Boxes, Detector, FrameContext, MotionDetectorConfig,
+                               _to_full_resolution, box_pixel_ranges, mask_to_boxes, merge_boxes)
 from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, NO_MODEL, DynamicPoints,
                                     DynamicPointsConfig, DynamicPointsTracker,
                                     adaptive_threshold, classify_window, default_intrinsics,
@@ -64,89 +67,79 @@ from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, NO_MODEL, DynamicPoint
 from mona_vo.errors import ConfigError, InputError
 from mona_vo.flow import (FLOWS, DISFlowConfig, Flow, chain_flows, forward_warp_mask,
                           mean_flow_magnitude, resize_flow)
+from mona_vo import mask_evidence
+from mona_vo.mask_evidence import EvidenceConfig
 from mona_vo.point_selection import grid_points, texture_score
 from mona_vo.segmentation import SEGMENTERS, GrabCutConfig, Segmenter
 from mona_vo.tracking import TRACKERS, Tracker, to_gray
 
 PROMPT_MODES = ("boxes", "points", "raw-boxes")
-STAGES = ("flow", "tracking", "dynamic_points", "motion_map", "detection", "box_filter",
-          "segmentation")
+STAGES = ("flow", "tracking", "dynamic_points", "motion_map", "evidence", "detection",
+          "box_filter", "segmentation")
 
 
 @dataclass(frozen=True)
 class MaskConfig:
     """Settings of the mask pipeline; back ends by registry name, one section per classical one."""
 
-    flow: str = "dis"                       # optical flow back end (mona_vo.flow.FLOWS)
-    tracker: str = "lk"                     # point tracker back end (mona_vo.tracking.TRACKERS)
-    detector: str = "motion"                # box detector back end (mona_vo.detection.DETECTORS)
-    segmenter: str = "grabcut"              # segmenter back end (mona_vo.segmentation.SEGMENTERS)
-    device: str = "cpu"                     # torch device of neural back ends (cpu works)
-    weights: str = ""                       # folder of neural checkpoints under their documented
-                                            # names (mona_vo.neural.weights); "" = $MONA_VO_WEIGHTS
-    flow_checkpoint: str = ""               # checkpoint file of a neural flow; "" = from weights
-    detector_checkpoint: str = ""           # checkpoint file of a neural detector; "" = from weights
-    segmenter_checkpoint: str = ""          # checkpoint file of a neural segmenter; "" = from weights
-    tracker_checkpoint: str = ""            # checkpoint file of a neural tracker; "" = from weights
-    prompt: str = "boxes"                   # boxes (filtered; the method) | points | raw-boxes
-    tau0: float = 3.0                       # dynamic points the unit box must hold (count)
-    box_filter_unit: str = "smallest-qualifying"  # unit box rule: smallest-qualifying | smallest
-    analysis_width: int = 256               # width of the motion map, pixels
-    motion_gap: int = 8                     # G_max: motion map from the flow t -> t+G, frames
-    motion_travel_px: float = 24.0          # G is the fewest frames whose m_t add up to this, px
-    motion_memory: float = 0.5              # the previous map, moved along the flow and times
-                                            # this (0: off), is a floor of the next one
-    chain_change_px: float = 1.0            # a chained step may differ from the one before by
-    chain_change_frac: float = 0.3          # this (full-res px) + this x its length, else the
-                                            # chain counts as broken (occlusion)
-    motion_grid_cols: int = 24              # motion-map camera fit: grid columns (anchor rule)
-    motion_grid_rows: int = 10              # motion-map camera fit: grid rows
-    motion_model_threshold_px: float = 0.25  # robust-fit threshold of that fit, analysis pixels
-    motion_model: str = "window"            # model of that fit: window (the one the frame's
+    # The point tracker, the device and the weights folder are PipelineConfig's `tracker`,
+    # `device` and `weights` (shared with the VO); the masker is handed them.
+    flow: str = setting("dis", choices=FLOWS)  # optical flow back end (mona_vo.flow.FLOWS)
+    detector: str = setting("motion", choices=DETECTORS)  # box detector back end
+                                            # (mona_vo.detection.DETECTORS)
+    segmenter: str = setting("grabcut", choices=SEGMENTERS)  # segmenter back end
+                                            # (mona_vo.segmentation.SEGMENTERS)
+    flow_checkpoint: str = setting("", text="a file path")  # checkpoint file of a neural flow;
+                                            # "" = from weights
+    detector_checkpoint: str = setting("", text="a file path")  # checkpoint file of a neural
+                                            # detector; "" = from weights
+    segmenter_checkpoint: str = setting("", text="a file path")  # checkpoint file of a neural
+                                            # segmenter; "" = from weights
+    prompt: str = setting("boxes", choices=PROMPT_MODES)  # boxes (filtered; the method) | points
+                                            # | raw-boxes
+    tau0: float = setting(3.0, gt=0)        # dynamic points the unit box must hold (count)
+    box_filter_unit: str = setting("smallest-qualifying", choices=UNIT_RULES)  # unit box rule:
+                                            # smallest-qualifying | smallest
+    analysis_width: int = setting(256, ge=16)  # width of the motion map, pixels
+    motion_gap: int = setting(8, ge=1)      # G_max: motion map from the flow t -> t+G, frames
+    motion_travel_px: float = setting(24.0, ge=0)  # G is the fewest frames whose m_t add up to
+                                            # this, px
+    motion_memory: float = setting(0.5, ge=0, lt=1)  # the previous map, moved along the flow
+                                            # and times this (0: off), is a floor of the next one
+    chain_change_px: float = setting(1.0, ge=0)  # a chained step may differ from the one before
+                                            # by this (full-res px) + chain_change_frac x its
+                                            # length, else the chain counts as broken (occlusion)
+    chain_change_frac: float = setting(0.3, ge=0)  # see chain_change_px
+    motion_grid_cols: int = setting(24, ge=2)  # motion-map camera fit: grid columns (anchor rule)
+    motion_grid_rows: int = setting(10, ge=2)  # motion-map camera fit: grid rows
+    motion_model_threshold_px: float = setting(0.25, gt=0)  # robust-fit threshold of that fit,
+                                            # analysis pixels
+    motion_model: str = setting("window", choices=("window", "epipolar", "homography"))
+                                            # model of that fit: window (the one the frame's
                                             # track window chose; epipolar when the camera
                                             # turns slowly: dynamic_points.
                                             # homography_min_turn_deg) | epipolar | homography
-    mask_prior: bool = True                 # the previous frame's mask, carried along the flow,
+    mask_prior: bool = setting(True)        # the previous frame's mask, carried along the flow,
                                             # is a prior of the detector and the segmenter
                                             # (not in 'points' mode: prompts only)
+    vo_max_coverage: float = setting(0.4, gt=0, le=1)  # a mask covering more of the frame
+                                            # than this is not handed to the VO (unreliable)
+    vo_min_stability: float = setting(0.3, ge=0, le=1)  # nor one whose IoU with the previous
+                                            # mask, carried here by the flow, is below this
+                                            # (flicker; a first mask after none passes)
     dynamic_points: DynamicPointsConfig = field(default_factory=DynamicPointsConfig)  # module 1
     dis: DISFlowConfig = field(default_factory=DISFlowConfig)            # 'dis' flow settings
     motion: MotionDetectorConfig = field(default_factory=MotionDetectorConfig)  # 'motion' detector
     grabcut: GrabCutConfig = field(default_factory=GrabCutConfig)        # 'grabcut' segmenter
+    evidence: EvidenceConfig = field(default_factory=EvidenceConfig)     # accumulated evidence
 
     def validate(self) -> None:
-        FLOWS.check(self.flow)
-        TRACKERS.check(self.tracker)
-        DETECTORS.check(self.detector)
-        SEGMENTERS.check(self.segmenter)
-        if self.prompt not in PROMPT_MODES:
-            raise ConfigError(f"prompt '{self.prompt}' unknown; choose one of: "
-                              f"{', '.join(PROMPT_MODES)}")
-        if self.box_filter_unit not in UNIT_RULES:
-            raise ConfigError(f"box_filter_unit '{self.box_filter_unit}' unknown; choose one of: "
-                              f"{', '.join(UNIT_RULES)}")
-        if not self.tau0 > 0:
-            raise ConfigError("tau0 must be > 0")
-        if self.analysis_width < 16:
-            raise ConfigError("analysis_width must be at least 16 pixels")
-        if self.motion_gap < 1:
-            raise ConfigError("motion_gap must be at least 1 frame")
-        if not 0 <= self.motion_memory < 1:
-            raise ConfigError("motion_memory must be in [0, 1)")
-        if self.chain_change_px < 0 or self.chain_change_frac < 0:
-            raise ConfigError("chain_change_px and chain_change_frac must be >= 0")
-        if self.motion_travel_px < 0:
-            raise ConfigError("motion_travel_px must be >= 0")
-        if self.motion_grid_cols < 2 or self.motion_grid_rows < 2:
-            raise ConfigError("motion_grid_cols and motion_grid_rows must be at least 2")
-        if self.motion_model not in ("window", "epipolar", "homography"):
-            raise ConfigError("motion_model must be window, epipolar or homography")
-        if self.motion_model_threshold_px <= 0:
-            raise ConfigError("motion_model_threshold_px must be > 0")
+        check_fields(self, "masks.")
         self.dynamic_points.validate()
         self.dis.validate()
         self.motion.validate()
         self.grabcut.validate()
+        self.evidence.validate()
 
     @property
     def lag(self) -> int:
@@ -167,6 +160,13 @@ class MaskFrame:
     box_filter:     the filter's details (counts, thresholds, unit box), None unless 'boxes'.
     motion_map:     (h, w) float32 residual motion, pixels per frame, analysis resolution.
     seconds:        stage name -> seconds spent on this frame (see the module docstring).
+    evidence:       (h, w) float32 accumulated log-odds of motion, analysis resolution
+                    (:mod:`mona_vo.mask_evidence`), or None when not accumulated.
+    stability:      IoU of this mask with the previous frame's mask carried here along the
+                    flow (analysis resolution); NaN when either is empty.
+    reliable:       whether the VO should use the mask: coverage at most
+                    ``vo_max_coverage`` and stability (when defined) at least
+                    ``vo_min_stability``; else the VO relies on its own residual test.
     """
 
     index: int
@@ -177,6 +177,14 @@ class MaskFrame:
     box_filter: BoxFilterResult | None
     motion_map: np.ndarray | None
     seconds: dict[str, float]
+    evidence: np.ndarray | None = None
+    stability: float = float("nan")
+    reliable: bool = True
+
+    @property
+    def vo_mask(self) -> np.ndarray | None:
+        """The mask the VO should use: the mask when reliable, else None."""
+        return self.mask if self.reliable else None
 
 
 def _build(registry, name: str, section, device: str, checkpoint: str = ""):
@@ -196,29 +204,31 @@ def build_tracker(name: str, device: str = "cpu", checkpoint: str = "") -> Track
 class MonaMasker:
     """Streaming MONA masks (module docstring).
 
-    ``intrinsics``: the camera's, when known (else a pinhole guess from
-    ``config.dynamic_points.assumed_hfov_deg`` at the first frame). Back ends may be passed in as
-    instances (tests, or a caller sharing one flow network); otherwise they are built from
-    ``config`` (classical ones with their config section, neural ones with ``config.device``).
+    ``intrinsics``: the camera's, when known (the pipeline passes its guess from
+    ``assumed_hfov_deg`` otherwise; None here: conventions' DEFAULT_HFOV_DEG). Back ends may be
+    passed in as instances (tests, or a caller sharing one flow network; the pipeline passes the
+    tracker built from its ``tracker`` key, None: the classical ``lk``); otherwise they are built
+    from ``config`` (classical ones with their config section, neural ones on ``device`` with
+    checkpoints from ``weights``, the pipeline's keys of those names).
     """
 
     def __init__(self, config: MaskConfig | None = None, intrinsics: Intrinsics | None = None, *,
                  flow: Flow | None = None, tracker: Tracker | None = None,
-                 detector: Detector | None = None, segmenter: Segmenter | None = None):
+                 detector: Detector | None = None, segmenter: Segmenter | None = None,
+                 device: str = "cpu", weights: str = ""):
         self.config = config or MaskConfig()
         self.config.validate()
         cfg = self.config
         self.intrinsics = intrinsics
         self.flow = flow or _build(FLOWS, cfg.flow, cfg.dis if cfg.flow == "dis" else None,
-                                   cfg.device, cfg.flow_checkpoint or cfg.weights)
-        self.tracker = tracker or build_tracker(cfg.tracker, cfg.device,
-                                                cfg.tracker_checkpoint or cfg.weights)
+                                   device, cfg.flow_checkpoint or weights)
+        self.tracker = tracker or build_tracker("lk")
         self.detector = detector or _build(DETECTORS, cfg.detector,
                                            cfg.motion if cfg.detector == "motion" else None,
-                                           cfg.device, cfg.detector_checkpoint or cfg.weights)
+                                           device, cfg.detector_checkpoint or weights)
         self.segmenter = segmenter or _build(SEGMENTERS, cfg.segmenter,
                                              cfg.grabcut if cfg.segmenter == "grabcut" else None,
-                                             cfg.device, cfg.segmenter_checkpoint or cfg.weights)
+                                             device, cfg.segmenter_checkpoint or weights)
         self._points = DynamicPointsTracker(cfg.dynamic_points, self.tracker)
         self._size: tuple[int, int] | None = None      # (W, H)
         self._n = 0                                     # frames pushed
@@ -235,6 +245,8 @@ class MonaMasker:
         self._prev_mask: np.ndarray | None = None       # and its mask, full resolution
         self._last_image: np.ndarray | None = None      # the last frame pushed
         self._prev_image: np.ndarray | None = None      # the one before it
+        self._logodds: np.ndarray | None = None         # accumulated evidence, last frame emitted
+        self._found: np.ndarray | None = None           # and its regions (objects followed)
 
     # ------------------------------------------------------------------ buffers (for tests)
     def buffered_frames(self) -> int:
@@ -253,7 +265,7 @@ class MonaMasker:
         if self._size is None:
             self._size = (W, H)
             if self.intrinsics is None:
-                self.intrinsics = default_intrinsics(W, H, self.config.dynamic_points)
+                self.intrinsics = default_intrinsics(W, H)
         elif self._size != (W, H):
             raise InputError(f"frame {frame_index} is {W} x {H}, the earlier frames are "
                              f"{self._size[0]} x {self._size[1]}")
@@ -433,10 +445,23 @@ class MonaMasker:
             spread = 1.4826 * float(np.median(mmap[mmap > 0]))
             motion_theta = max(theta, cfg.dynamic_points.noise_factor * spread)
         dyn_xy = dyn.dynamic_points
-        prior = None
-        if (cfg.mask_prior and cfg.prompt != "points" and self._prev_mask is not None
-                and self._prev_flow is not None and self._prev_mask.any()):
-            prior = self._carry_prior()
+        carried_prev = None
+        if self._prev_mask is not None and self._prev_flow is not None and self._prev_mask.any():
+            carried_prev = self._carry_prior()
+        prior = carried_prev if cfg.mask_prior and cfg.prompt != "points" else None
+        t_ev = time.perf_counter()
+        use_evidence = cfg.evidence.enabled and cfg.prompt == "boxes" and mmap is not None
+        logodds = found = allowed = None
+        if use_evidence:
+            logodds = self._accumulate(mmap, motion_theta, dyn)
+            follow = None
+            if self._found is not None and self._prev_flow is not None and self._found.any():
+                follow = forward_warp_mask(self._found, self._prev_flow)
+            found = mask_evidence.regions(logodds, cfg.evidence, follow)
+            allowed = mask_evidence.bound(logodds, cfg.evidence, follow)
+            # The objects followed so far are the prior of the detector and the segmenter.
+            prior = found if prior is None or allowed is None else (found | (prior & allowed))
+        t1b = time.perf_counter()
         context = FrameContext(self._index[p], mmap, theta, m_t, dyn_xy, motion_theta, dyn.points,
                                prior, dyn.residual[dyn.is_dynamic])
         boxes = Boxes.empty() if cfg.prompt == "points" else self.detector.detect(image, context)
@@ -445,6 +470,8 @@ class MonaMasker:
         if cfg.prompt == "boxes":
             filt = adaptive_box_filter(boxes.xyxy, dyn_xy, cfg.tau0, cfg.box_filter_unit)
             kept = boxes.select(filt.keep)
+            if use_evidence:
+                kept = self._with_evidence(kept, found, allowed, image.shape[:2])
         elif cfg.prompt == "raw-boxes":
             kept = boxes
         else:
@@ -454,11 +481,15 @@ class MonaMasker:
             mask = self.segmenter.segment(image, None, dyn_xy, context)
         elif len(kept):
             mask = self.segmenter.segment(image, kept, None, context)
+            if allowed is not None:
+                mask &= self._upsample(allowed, image.shape[:2])
         else:
             mask = np.zeros(image.shape[:2], bool)
+        stability, reliable = self._reliability(mask, carried_prev)
         t4 = time.perf_counter()
-        sec["motion_map"] += t1 - t0
-        sec["detection"] += t2 - t1
+        sec["motion_map"] += t_ev - t0
+        sec["evidence"] += t1b - t_ev
+        sec["detection"] += t2 - t1b
         sec["box_filter"] += t3 - t2
         sec["segmentation"] += t4 - t3
         # Release what no later frame needs: later motion maps chain flows from p + 1 on, and
@@ -466,16 +497,84 @@ class MonaMasker:
         del self._images[p]
         self._prev_map, self._prev_flow = mmap, self._flows.pop(p, None)
         self._prev_mask = mask
+        self._logodds, self._found = logodds, found
         self._m.pop(p - 1, None)
         index = self._index.pop(p)
-        return MaskFrame(index, mask, dyn, boxes, kept, filt, mmap, sec)
+        return MaskFrame(index, mask, dyn, boxes, kept, filt, mmap, sec, logodds, stability,
+                         reliable)
+
+    def _reliability(self, mask: np.ndarray, carried_prev: np.ndarray | None
+                     ) -> tuple[float, bool]:
+        """(stability, reliable) of a frame's mask (see :class:`MaskFrame`)."""
+        cfg = self.config
+        coverage = float(mask.mean())
+        stability = float("nan")
+        if carried_prev is not None and carried_prev.any() and mask.any():
+            h, w = carried_prev.shape
+            small = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0.5
+            union = np.count_nonzero(small | carried_prev)
+            stability = np.count_nonzero(small & carried_prev) / union if union else float("nan")
+        reliable = coverage <= cfg.vo_max_coverage and not (
+            np.isfinite(stability) and stability < cfg.vo_min_stability)
+        return stability, bool(reliable)
+
+    def _accumulate(self, mmap: np.ndarray, motion_theta: float,
+                    dyn: DynamicPoints) -> np.ndarray:
+        """This frame's log-odds map: the last one carried along the flow, decayed, plus this
+        frame's observation (:mod:`mona_vo.mask_evidence`). The first frame counts its
+        observation twice (as if seen one frame before): a mover in view from the start is
+        found there, a one-frame spike still is not (obs_max x 2 stays below clamp_hi)."""
+        ev = self.config.evidence
+        dyn_sel = dyn.is_dynamic
+        obs = mask_evidence.observe(mmap, motion_theta, mmap.shape, dyn.points[dyn_sel],
+                                    dyn.residual[dyn_sel], self._size[0], ev)
+        if self._logodds is None or self._logodds.shape != mmap.shape:
+            return mask_evidence.update(obs, obs, dataclasses.replace(ev, decay=0.999))
+        carried = mask_evidence.carry(self._logodds, self._prev_flow, 0.0)
+        return mask_evidence.update(carried, obs, ev)
+
+    def _with_evidence(self, kept: Boxes, found: np.ndarray, allowed: np.ndarray | None,
+                       shape: tuple[int, int]) -> Boxes:
+        """Filtered boxes that overlap the evidence bound, plus the boxes of the evidence
+        regions (the objects followed), merged where they overlap."""
+        H, W = shape
+        h, w = found.shape
+        if allowed is not None and len(kept):
+            ranges = box_pixel_ranges(_to_full_resolution_boxes(kept.xyxy, w / W, h / H), w, h)
+            ok = np.array([allowed[r0:r1, c0:c1].any() for c0, r0, c1, r1 in ranges], bool)
+            kept = kept.select(ok)
+        small, _ = mask_to_boxes(found, 1)
+        if not len(small):
+            return kept
+        xyxy = _to_full_resolution(small, W / w, H / h)
+        bw, bh = xyxy[:, 2] - xyxy[:, 0], xyxy[:, 3] - xyxy[:, 1]
+        margin = self.config.motion.box_margin_frac
+        xyxy += np.stack([-margin * bw, -margin * bh, margin * bw, margin * bh], axis=1)
+        all_xyxy = np.concatenate([kept.xyxy, xyxy.astype(np.float32)])
+        score = np.concatenate([kept.score, np.ones(len(xyxy), np.float32)])
+        all_xyxy, score = merge_boxes(all_xyxy, score, self.config.motion.merge_overlap)
+        return Boxes(all_xyxy, score, np.full(len(score), "moving-region")).clipped(W, H)
+
+    @staticmethod
+    def _upsample(small: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        H, W = shape
+        return cv2.resize(small.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR) > 0.5
+
+
+def _to_full_resolution_boxes(xyxy: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """(K, 4) full-resolution boxes -> the analysis resolution (``sx = w / W``)."""
+    out = np.asarray(xyxy, np.float64).copy()
+    out[:, [0, 2]] = (out[:, [0, 2]] + 0.5) * sx - 0.5
+    out[:, [1, 3]] = (out[:, [1, 3]] + 0.5) * sy - 0.5
+    return out
 
 
 def compute_masks(frames: Iterable, config: MaskConfig | None = None,
-                  intrinsics: Intrinsics | None = None) -> Iterator[MaskFrame]:
+                  intrinsics: Intrinsics | None = None, **backends) -> Iterator[MaskFrame]:
     """Masks of a stream of frames (objects with ``index`` and ``image`` attributes, e.g.
-    :class:`data_tools.frames.Frame`, or ``(index, image)`` pairs), one per frame, in order."""
-    masker = MonaMasker(config, intrinsics)
+    :class:`data_tools.frames.Frame`, or ``(index, image)`` pairs), one per frame, in order.
+    ``backends``: MonaMasker's keyword arguments (tracker, device, weights, ...)."""
+    masker = MonaMasker(config, intrinsics, **backends)
     for frame in frames:
         if isinstance(frame, tuple):
             index, image = frame

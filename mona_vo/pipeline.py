@@ -15,7 +15,10 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from mona_vo.conventions import Intrinsics
+from mona_vo.calibration import FocalConfig
+from mona_vo.config import check_fields, setting
+from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
+from mona_vo.tracking import TRACKERS
 from mona_vo.errors import ConfigError, InputError
 from mona_vo.vo import VOConfig, VOResult, VisualOdometry
 
@@ -28,14 +31,47 @@ def _mask_config_default():
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    vo: VOConfig = field(default_factory=VOConfig)
-    masks: Any = field(default_factory=_mask_config_default)  # mona_vo.masks.MaskConfig
+    """The whole run: facts shared by the masks and the VO (one key each), then the stages."""
+
+    tracker: str = setting("lk", choices=TRACKERS)  # point tracker of the masks and of the VO
+                                            # (mona_vo.tracking.TRACKERS)
+    tracker_checkpoint: str = setting("", text="a file path")  # checkpoint file of a neural
+                                            # tracker; "" = from weights
+    device: str = setting("cpu", pattern=r"cpu|cuda(:[0-9]+)?")  # torch device of the neural
+                                            # back ends (classical ones run on the CPU)
+    weights: str = setting("", text="a folder path")  # folder of neural checkpoints under their
+                                            # documented names (mona_vo.neural.weights);
+                                            # "" = $MONA_VO_WEIGHTS
+    assumed_hfov_deg: float = setting(DEFAULT_HFOV_DEG, ge=10, le=170)  # horizontal field of
+                                            # view assumed without --calib, degrees (masks, VO
+                                            # and report)
+    calibration: FocalConfig = field(default_factory=FocalConfig)  # focal length without
+                                            # --calib (mona_vo.calibration)
+    vo: VOConfig = field(default_factory=VOConfig)  # visual odometry
+    masks: Any = field(default_factory=_mask_config_default)  # MONA moving-object masks
+                                            # (mona_vo.masks.MaskConfig)
 
     def validate(self) -> None:
+        check_fields(self)
         self.vo.validate()
         v = getattr(self.masks, "validate", None)
         if callable(v):
             v()
+
+    def guessed_intrinsics(self, width: int, height: int) -> Intrinsics:
+        """The pinhole guess of an uncalibrated width x height video (``assumed_hfov_deg``)."""
+        return Intrinsics.default_for(width, height, self.assumed_hfov_deg)
+
+    def build_tracker(self):
+        """A new :class:`mona_vo.tracking.Tracker` of the ``tracker`` key (the masks and the VO
+        each get their own: they track different points)."""
+        from mona_vo.masks import build_tracker
+
+        return build_tracker(self.tracker, self.device, self.tracker_checkpoint or self.weights)
+
+    def masker_backends(self) -> dict:
+        """Keyword arguments of :class:`mona_vo.masks.MonaMasker` from the shared keys."""
+        return {"tracker": self.build_tracker(), "device": self.device, "weights": self.weights}
 
 
 @dataclass
@@ -61,6 +97,7 @@ class RunResult:
     intrinsics: Intrinsics          # of the first frame (per-frame ones were given by the caller)
     timings: dict[str, float]       # stage -> seconds (masks stages, VO stages, total)
     mask_coverage: np.ndarray       # (N,) fraction of each frame's pixels inside its mask
+    calibration: Any = None         # mona_vo.calibration.FocalEstimate without given intrinsics
 
     @property
     def n_frames(self) -> int:
@@ -104,6 +141,22 @@ class _CallerMasks:
         return m
 
 
+def _estimate_focal(frames: Iterable, config: "PipelineConfig"):
+    """Read the first ``config.calibration.frames`` frames, estimate the focal length from them
+    (:func:`mona_vo.calibration.estimate_focal`) and return (the whole stream again, estimate)."""
+    import itertools
+
+    from mona_vo.calibration import estimate_focal
+
+    it = iter(frames)
+    head = list(itertools.islice(it, config.calibration.frames))
+    if len(head) < 3:
+        return itertools.chain(head, it), None
+    h, w = head[0].image.shape[:2]
+    est = estimate_focal([f.image for f in head], config.guessed_intrinsics(w, h), config.calibration)
+    return itertools.chain(head, it), est
+
+
 def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                         config: PipelineConfig | None = None,
                         on_frame: Callable[[FrameOutput], None] | None = None,
@@ -112,7 +165,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
 
     frames:     iterable of objects with ``index``, ``timestamp``, ``name``, ``image`` ((H, W, 3)
                 uint8 RGB), e.g. ``data_tools.frames.open_frames(path)``.
-    intrinsics: None (a 60-degree field-of-view guess), one Intrinsics, a per-frame sequence or
+    intrinsics: None (a guess from ``config.assumed_hfov_deg``), one Intrinsics, a per-frame sequence or
                 dict by frame index, or a callable ``frame -> Intrinsics``.
     masks:      None, ``"mona"``, an iterable of (H, W) bool aligned with the frames, or a
                 callable ``frame -> mask``.
@@ -122,6 +175,12 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     config = config or PipelineConfig()
     config.validate()
     t_start = time.perf_counter()
+    source = frames
+    calibration = None
+    if intrinsics is None and config.calibration.mode == "estimate":
+        # Without intrinsics the focal length comes from the first frames (read ahead, then
+        # replayed); the VO uses it, the report says how it was found.
+        frames, calibration = _estimate_focal(frames, config)
     timings: dict[str, float] = {}
     vo: VisualOdometry | None = None
     names: list[str] = []
@@ -141,15 +200,22 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
 
     pending: deque = deque()   # frames waiting for their MONA mask
 
-    def feed(frame, mask, mona=None):
+    def feed(frame, mask, mona=None, vo_mask=None):
+        # vo_mask: what the VO sees; MONA's masks reach it only when reliable
+        # (MaskFrame.reliable: not too large, not flickering), else the VO relies on its own
+        # residual test for that frame. Caller masks are used as given.
         nonlocal vo, first_intr
+        if mona is None:
+            vo_mask = mask
         intr = _intrinsics_for(intrinsics, frame, *size)
         if vo is None:
-            first_intr = intr or Intrinsics.default_for(*size)
-            vo = VisualOdometry(config.vo, size[0], size[1], first_intr)
+            first_intr = intr or (calibration.intrinsics_for(*size) if calibration is not None
+                                  else config.guessed_intrinsics(*size))
+            vo = VisualOdometry(config.vo, size[0], size[1], first_intr,
+                                tracker=config.build_tracker())
         if on_frame is not None:
             on_frame(FrameOutput(frame.index, frame.name, frame.timestamp, frame.image, mask, mona))
-        vo.step(frame.image, timestamp=frame.timestamp, mask=mask, intrinsics=intr)
+        vo.step(frame.image, timestamp=frame.timestamp, mask=vo_mask, intrinsics=intr)
         names.append(frame.name)
         coverage.append(float(mask.mean()) if mask is not None else 0.0)
         if progress is not None:
@@ -163,7 +229,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             for stage, sec in (getattr(mf, "seconds", None) or {}).items():
                 key = f"masks.{stage}"
                 timings[key] = timings.get(key, 0.0) + sec
-            feed(frame, mf.mask, mf)
+            feed(frame, mf.mask, mf, getattr(mf, "vo_mask", mf.mask))
 
     for frame in frames:
         h, w = frame.image.shape[:2]
@@ -175,8 +241,9 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             if masker is None:
                 from mona_vo.masks import MonaMasker
 
-                # MONA's camera model uses the intrinsics when known (a guess otherwise).
-                masker = MonaMasker(config.masks, _intrinsics_for(intrinsics, frame, w, h))
+                # MONA's camera model uses the intrinsics when known, else the VO's guess.
+                masker = MonaMasker(config.masks, _intrinsics_for(intrinsics, frame, w, h)
+                                    or config.guessed_intrinsics(w, h), **config.masker_backends())
             pending.append(frame)
             drain(masker.push(frame.index, frame.image))
         else:
@@ -184,11 +251,14 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     if masker is not None:
         drain(masker.flush())
     if vo is None or len(names) < 2:
-        where = getattr(frames, "path", None)
+        where = getattr(source, "path", None)
         raise InputError(f"{str(where) + ': ' if where is not None else ''}a trajectory needs at "
                          f"least 2 frames; the input has {len(names)}")
     result = vo.finish()
     for stage, sec in result.timings.items():
         timings[f"vo.{stage}"] = sec
     timings["total"] = time.perf_counter() - t_start
-    return RunResult(result, names, size[0], size[1], first_intr, timings, np.array(coverage))
+    if calibration is not None:
+        timings["calibration"] = calibration.seconds
+    return RunResult(result, names, size[0], size[1], first_intr, timings, np.array(coverage),
+                     calibration)

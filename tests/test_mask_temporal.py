@@ -1,0 +1,103 @@
+"""The central claims of the masks on a generated dynamic scene: MONA masks lower the VO's ATE
+against no masks, and a mover's mask is stable from frame to frame. Also: unreliable masks
+(too large, flickering) are not handed to the VO."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from data_tools.frames import open_frames
+from data_tools.masks_io import read_mask_png
+from eval.metrics import Trajectory, evaluate_trajectory
+from mona_vo.masks import MaskConfig, MonaMasker
+from mona_vo.pipeline import estimate_trajectory
+
+
+def _gt_masks(folder, names):
+    return [read_mask_png(folder / "masks" / f"{n}.png") for n in names]
+
+
+def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
+    # Measured (one-large seed 0, 384 x 164, 24 frames; a car covers 28 % of the view): ATE
+    # 0.67 % of the path without masks, 0.24 % with MONA, 0.23 % with the true masks. The
+    # bound asks for most of that gain: masks that miss the car, or mask static ground that
+    # the VO then loses, fail it.
+    folder, scene = small_scene
+    gt = Trajectory(np.arange(len(scene), dtype=float), scene.poses())
+    ate = {}
+    for variant in (None, "mona"):
+        result = estimate_trajectory(open_frames(folder), intrinsics=scene.intrinsics,
+                                     masks=variant)
+        ate[variant] = evaluate_trajectory(gt, Trajectory(np.arange(len(scene), dtype=float),
+                                                          result.vo.poses)).ate
+    assert ate["mona"] < 0.6 * ate[None]
+
+
+def test_a_movers_mask_is_stable_from_frame_to_frame(small_scene):
+    folder, scene = small_scene
+    frames = list(open_frames(folder))
+    gts = _gt_masks(folder, [f.name for f in frames])
+    masker = MonaMasker(MaskConfig(), scene.intrinsics)
+    out = []
+    for f in frames:
+        out += masker.push(f.index, f.image)
+    out += masker.flush()
+    # IoU between consecutive masks, on frames where the mover is in view in both (the mover
+    # moves a few pixels per frame: consecutive true masks overlap by more than this too).
+    pairs = [(a.mask, b.mask, ga, gb) for a, b, ga, gb in zip(out, out[1:], gts, gts[1:])
+             if ga.mean() > 0.01 and gb.mean() > 0.01]
+    assert len(pairs) >= 10
+    iou = [np.count_nonzero(a & b) / max(np.count_nonzero(a | b), 1) for a, b, _, _ in pairs]
+    true_iou = [np.count_nonzero(ga & gb) / np.count_nonzero(ga | gb) for _, _, ga, gb in pairs]
+    assert np.median(iou) > 0.8
+    assert min(iou) > 0.5                       # no frame where the mover is lost or doubled
+    assert np.mean(iou) > np.mean(true_iou) - 0.1
+    # ... and it is the mover that is masked, not a stable blob elsewhere.
+    J = [np.count_nonzero(o.mask & g) / max(np.count_nonzero(o.mask | g), 1)
+         for o, g in zip(out, gts) if g.mean() > 0.01]
+    assert np.mean(J) > 0.6
+    assert all(o.reliable for o in out[2:])     # a stable mask of a car is handed to the VO
+
+
+def test_too_large_or_flickering_masks_are_not_handed_to_the_vo():
+    masker = MonaMasker(MaskConfig(vo_max_coverage=0.3, vo_min_stability=0.5))
+    h, w = 40, 64
+    masker._size = (w, h)
+    big = np.zeros((h, w), bool)
+    big[:, :40] = True                             # 62 % of the frame
+    assert masker._reliability(big, None)[1] is False
+    small = np.zeros((h, w), bool)
+    small[5:15, 5:15] = True
+    carried_same = small.copy()
+    carried_elsewhere = np.zeros((h, w), bool)
+    carried_elsewhere[25:35, 40:50] = True         # last frame's mask was somewhere else
+    stab, ok = masker._reliability(small, carried_same)
+    assert ok and stab == 1.0
+    stab, ok = masker._reliability(small, carried_elsewhere)
+    assert not ok and stab == 0.0
+    stab, ok = masker._reliability(small, None)    # a first mask after none passes
+    assert ok and np.isnan(stab)
+
+
+def test_the_pipeline_gives_the_vo_only_reliable_masks(small_scene, monkeypatch):
+    folder, scene = small_scene
+    frames = list(open_frames(folder, max_frames=8))
+    seen = []
+    import mona_vo.pipeline as pipeline
+
+    real = pipeline.VisualOdometry
+
+    class Spy(real):
+        def step(self, image, timestamp=None, mask=None, intrinsics=None):
+            seen.append(mask)
+            return super().step(image, timestamp=timestamp, mask=mask, intrinsics=intrinsics)
+
+    monkeypatch.setattr(pipeline, "VisualOdometry", Spy)
+    written = []
+    # Every mask counts as too large: the VO sees none, the caller still gets every mask.
+    cfg = pipeline.PipelineConfig(masks=dataclasses.replace(MaskConfig(), vo_max_coverage=1e-6))
+    estimate_trajectory(frames, intrinsics=scene.intrinsics, masks="mona", config=cfg,
+                        on_frame=lambda fo: written.append(fo.mask))
+    assert len(seen) == len(frames) and all(m is None for m in seen)
+    assert any(m is not None and m.any() for m in written)
