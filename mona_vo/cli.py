@@ -122,7 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mask_options(m, allow_folder=False)
     m.set_defaults(func=_cmd_masks)
 
-    bt = sub.add_parser("batch", help="many videos on Ray: run's outputs per input, batch.csv and index.html",
+    bt = _sub(sub, "batch", help="many videos on Ray: run's outputs per input, batch.csv and index.html",
                         description="One Ray task per input; DIR/<input name>/ holds what `run` writes. "
                                     "DIR/batch.csv (one row per input: status ok|failed|skipped, the usable "
                                     "verdict, key numbers, node) and DIR/index.html are rewritten as tasks "
@@ -148,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(bt)
     _add_refine_option(bt)
     bt.add_argument("--overlay", action="store_true", help="also write overlay.mp4 per input")
-    bt.set_defaults(func=_cmd_batch)
+    bt.set_defaults(func=_cmd_batch, takes_config=True)
 
     d = _sub(sub, "demo", help="generate a synthetic dynamic scene and compare no masks, MONA and GT masks",
              description="Renders a synthetic scene and runs it three times (no masks, MONA masks, GT "

@@ -336,6 +336,13 @@ def _yaml_scalar(value: Any) -> str:
     return yaml.safe_dump([value], default_flow_style=True, width=10**6).strip()[1:-1]
 
 
+def _comment(text: str, pad: str, width: int = 100) -> list[str]:
+    import textwrap
+
+    return textwrap.wrap(text, width=max(40, width - len(pad)), initial_indent=f"{pad}# ",
+                         subsequent_indent=f"{pad}#   ", break_on_hyphens=False)
+
+
 def to_yaml(cfg, *, indent: int = 0) -> str:
     """``cfg`` as YAML that :func:`load_config` reads back to an equal config, each key under a
     comment: its documentation and its allowed values."""
@@ -347,12 +354,13 @@ def to_yaml(cfg, *, indent: int = 0) -> str:
         value = getattr(cfg, f.name)
         doc = docs.get(f.name, "")
         if dataclasses.is_dataclass(value):
-            out.append(f"{pad}# {doc}" if doc else f"{pad}# section")
+            out.extend(_comment(doc or "section", pad))
             out.append(f"{pad}{f.name}:")
             out.append(to_yaml(value, indent=indent + 2).rstrip("\n"))
             continue
         rule = f.metadata.get(RULE) or Rule()
         allowed = rule.describe(hints[f.name])
-        out.append(f"{pad}# {doc + ' ' if doc else ''}[{allowed}]")
+        allowed = "[" + allowed.replace(" ", "\0") + "]"    # kept on one line when wrapped
+        out.extend(line.replace("\0", " ") for line in _comment(f"{doc + ' ' if doc else ''}{allowed}", pad))
         out.append(f"{pad}{f.name}: {_yaml_scalar(value)}")
     return "\n".join(out) + "\n"

@@ -52,13 +52,17 @@ def test_run_with_given_masks_writes_trajectory_masks_report_and_plot(mona_vo_ex
     assert not [p for p in out.iterdir() if p.name.startswith(".")], "temporary files left behind"
 
 
-def test_run_without_masks_and_without_calibration(mona_vo_exe, small_scene, tmp_path):
+def test_run_without_masks_and_without_calibration_uses_the_assumed_field_of_view(mona_vo_exe, small_scene,
+                                                                                   tmp_path):
     folder, scene = small_scene
     out = tmp_path / "run"
-    cli(mona_vo_exe, "run", folder, "--out", out, "--masks", "none")
+    cli(mona_vo_exe, "run", folder, "--out", out, "--masks", "none", "--set", "calibration.mode=guess",
+        "--set", "assumed_hfov_deg=75")
     assert not (out / "masks").exists()
     report = json.loads((out / "report.json").read_text())
-    assert report["calibration"]["source"].startswith("60-degree")
+    assert report["calibration"]["source"] == "75-degree field-of-view guess"
+    width = report["image_size"][0]
+    assert report["calibration"]["fx"] == pytest.approx(0.5 * width / np.tan(np.radians(75 / 2)))
     assert len(read_tum_trajectory(out / "trajectory.txt")[0]) == len(scene)
 
 

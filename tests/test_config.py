@@ -183,7 +183,7 @@ def test_the_assumed_field_of_view_reaches_masks_and_vo(monkeypatch):
         def __init__(self, r):
             self.index, self.timestamp, self.name, self.image = r.index, float(r.index), str(r.index), r.image
 
-    cfg = load_config(PipelineConfig, None, {"assumed_hfov_deg": 90})
+    cfg = load_config(PipelineConfig, None, {"assumed_hfov_deg": 90, "calibration.mode": "guess"})
     pipeline.estimate_trajectory([F(r) for r in scene], masks="mona", config=cfg)
     assert seen["masks"] == seen["vo"]
     assert seen["vo"].fx == pytest.approx(0.5 * 192 / np.tan(np.radians(45)))
