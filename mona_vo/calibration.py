@@ -49,9 +49,9 @@ class FocalConfig:
     points: int = setting(600, ge=20)       # points tracked (Shi-Tomasi corners)
     max_points: int = setting(300, ge=10)   # landmarks kept for the solves (the longest tracks)
     min_points: int = setting(30, ge=8)     # fewer reconstructed points: the guess is kept
-    min_contrast: float = setting(1.15, ge=1.0)  # worst / best held-focal RMSE needed to use the
+    min_contrast: float = setting(1.05, ge=1.0)  # worst / best held-focal RMSE needed to use the
                                             # estimate (a flat curve: focal not observable)
-    held_iterations: int = setting(8, ge=1)   # LM iterations of a held-focal solve (evidence)
+    held_iterations: int = setting(5, ge=1)   # LM iterations of a held-focal solve (evidence)
     freed_iterations: int = setting(30, ge=1)  # LM iterations of a freed-focal solve
 
     def validate(self) -> None:
