@@ -129,7 +129,9 @@ def rotation_only(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr
         return None
     na, nb = normalize(pts_a, intr_a), normalize(pts_b, intr_b)
     f = 0.5 * (intr_a.fx + intr_b.fx)
-    H, mask = cv2.findHomography(nb, na, cv2.USAC_MAGSAC, threshold_px / f)
+    # Fitted in pixel units of a virtual camera of focal f (centred): USAC's thresholds and
+    # scoring misbehave in normalised units (measured: 11 of 190 inliers on an exact pan).
+    H, mask = cv2.findHomography(nb * f, na * f, cv2.USAC_MAGSAC, threshold_px)
     if H is None:
         return None
     inliers = mask.ravel() > 0

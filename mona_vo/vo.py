@@ -165,10 +165,19 @@ class _Waiting:
 @dataclass
 class _Attempt:
     """An initialisation attempt: its first keyframe (the ``waiting[0]`` frame) and the frames
-    that wait for its map, plus the parallax evidence's running noise floor."""
+    that wait for its map."""
 
     first: _Waiting
     waiting: list[_Waiting]
+
+
+@dataclass
+class _Probe:
+    """The translation evidence's reference frame (its static tracks), the previous frame's,
+    and the running noise floor (sum of squared frame-to-frame residuals) since the reference."""
+
+    frame: int
+    ref: Observation
     prev: Observation
     floor_sq: float = 0.0
 
@@ -189,6 +198,7 @@ class VisualOdometry:
         self.drops = defaultdict(int)
         self.evidence = ParallaxEvidence()
         self._attempt: _Attempt | None = None
+        self._probe: _Probe | None = None
         self._focal_fixed: float | None = None
         self._speed_hint: float | None = None       # metres/frame before a re-initialisation
         self._rmse = float("nan")
@@ -211,6 +221,7 @@ class VisualOdometry:
                               f"{self.width} x {self.height}")
         self.map.frames.append(float(t if timestamp is None else timestamp))
         obs = self._track(gray, mask)
+        self._measure_parallax(t, obs)
         if self.map.state is VOState.INIT:
             self._step_init(t, gray, obs, intr, mask)
         else:
@@ -274,6 +285,29 @@ class VisualOdometry:
                                                                            LandmarkFlag.MASKED)
         self.timings["tracking"] += time.perf_counter() - t0
         return Observation(ids, uv, masked)
+
+    def _measure_parallax(self, t: int, obs: Observation) -> None:
+        """Translation evidence over the whole clip, whatever the map does: the parallax no
+        homography explains between a reference frame and this one, against the noise floor of
+        the frame-to-frame residuals over the same frames (:class:`ParallaxEvidence`). The
+        reference moves on when fewer than half of its tracks remain."""
+        t0 = time.perf_counter()
+        s = self._static(obs)
+        p = self._probe
+        if p is None or len(s.ids) < 8:
+            self._probe = _Probe(t, s, s) if len(s.ids) >= 8 else None
+            return
+        _, ia, ib = np.intersect1d(p.prev.ids, s.ids, return_indices=True)
+        step_px, _ = homography_parallax_px(p.prev.uv[ia], s.uv[ib])
+        if np.isfinite(step_px):
+            p.floor_sq += step_px ** 2
+        p.prev = s
+        _, ia, ib = np.intersect1d(p.ref.ids, s.ids, return_indices=True)
+        base_px, _ = homography_parallax_px(p.ref.uv[ia], s.uv[ib])
+        self.evidence = self.evidence.updated(base_px, float(np.sqrt(p.floor_sq)), t - p.frame)
+        if len(ia) < max(20, 0.5 * len(p.ref.ids)):
+            self._probe = _Probe(t, s, s)
+        self.timings["parallax"] += time.perf_counter() - t0
 
     def _new_points(self, gray, obs: Observation, mask) -> tuple[np.ndarray, np.ndarray]:
         score = texture_score(gray, self.cfg.point_score)
@@ -348,7 +382,7 @@ class VisualOdometry:
         waiting = [] if self.map.frames.written(t) else [first]
         if self._attempt is not None:
             waiting = [w for w in self._attempt.waiting if w.frame != t] + waiting
-        self._attempt = _Attempt(first, waiting, self._static(full))
+        self._attempt = _Attempt(first, waiting)
         self._settle_unreachable()
 
     def _settle_unreachable(self) -> None:
@@ -375,7 +409,6 @@ class VisualOdometry:
         s = self._static(obs)
         s0 = self._static(k0.obs)
         common, i0, i1 = np.intersect1d(s0.ids, s.ids, return_indices=True)
-        self._measure_parallax(att, s, s0.uv[i0], s.uv[i1], t - k0.frame)
         rel = None
         if len(common) >= max(8, self.cfg.init_min_inliers):
             rel = relative_pose(s0.uv[i0], s.uv[i1], k0.intr, intr)
@@ -399,15 +432,6 @@ class VisualOdometry:
             # its rotation chained to the old one's.
             self._start_attempt(t, gray, obs, intr, mask, T)
         self.timings["pose"] += time.perf_counter() - t0
-
-    def _measure_parallax(self, att: _Attempt, s: Observation, uv0, uv, frames: int) -> None:
-        _, ia, ib = np.intersect1d(att.prev.ids, s.ids, return_indices=True)
-        step_px, _ = homography_parallax_px(att.prev.uv[ia], s.uv[ib])
-        att.prev = s
-        if np.isfinite(step_px):
-            att.floor_sq += step_px ** 2
-        base_px, _ = homography_parallax_px(uv0, uv)
-        self.evidence = self.evidence.updated(base_px, float(np.sqrt(att.floor_sq)), frames)
 
     def _initialise(self, t, gray, obs: Observation, intr, mask, rel, inlier_ids) -> bool:
         att = self._attempt

@@ -193,12 +193,11 @@ class ParallaxEvidence:
         return self
 
     def as_dict(self, translation_ratio: float, map_built: bool) -> dict:
-        moving = self.ratio >= translation_ratio
-        if map_built:
-            conclusion = "translation"
-        else:
-            conclusion = "translation-without-map" if moving else "rotation-only"
+        """The report's view: ``conclusion`` is the evidence's verdict (translation when the
+        ratio reaches translation_ratio, else rotation-only), ``map_built`` what the VO did."""
         return {"rotation_free_parallax_px": round(self.parallax_px, 4),
                 "noise_floor_px": None if not np.isfinite(self.floor_px) else round(self.floor_px, 4),
                 "ratio": round(self.ratio, 3), "baseline_frames": self.frames,
-                "translation_ratio": translation_ratio, "conclusion": conclusion}
+                "translation_ratio": translation_ratio,
+                "conclusion": "translation" if self.ratio >= translation_ratio else "rotation-only",
+                "map_built": bool(map_built)}

@@ -136,5 +136,5 @@ def test_parallax_evidence_keeps_the_strongest_ratio():
     ev = ParallaxEvidence().updated(1.0, 1.0, 3).updated(6.0, 1.5, 10).updated(2.0, 1.0, 12)
     assert ev.ratio == 4.0 and ev.frames == 10
     d = ev.as_dict(3.0, map_built=False)
-    assert d["conclusion"] == "translation-without-map" and d["noise_floor_px"] == 1.5
+    assert d["conclusion"] == "translation" and not d["map_built"] and d["noise_floor_px"] == 1.5
     assert ParallaxEvidence().updated(0.5, 1.0, 5).as_dict(3.0, False)["conclusion"] == "rotation-only"
