@@ -40,7 +40,20 @@ Per frame t (stages timed in ``MaskFrame.seconds``):
                     and the box filter still asks for its dynamic points. Not in 'points' mode,
                     which prompts with the points only.
 ``box_filter``      the paper's adaptive filter with ``tau0`` (:mod:`mona_vo.box_filter`).
+``evidence``        ('boxes' mode, :mod:`mona_vo.mask_evidence`) the frame's motion map and
+                    strong dynamic points update a log-odds map carried along the flow; its
+                    hysteresis regions (objects found and not yet stopped, followed from frame
+                    to frame) are the prior of the detector and the segmenter, their boxes are
+                    kept as prompts beside the filtered ones (a filtered box outside every
+                    region's bound is dropped), and the mask stays within the regions' grown
+                    convex hulls (no spill onto still background of similar colour).
 ``segmentation``    the prompts (``config.prompt``) to ``config.segmenter``.
+
+Do no harm: each :class:`MaskFrame` says whether the VO should use it (``reliable``): a mask
+covering more than ``vo_max_coverage`` of the frame, or one whose IoU with the previous mask
+carried here is below ``vo_min_stability`` (flicker), is not handed to the VO
+(:attr:`MaskFrame.vo_mask` is None), which then relies on its own robust residual test for
+that frame.
 
 Prompt modes (the paper's ablation, Fig. 3): ``boxes`` (the method: filtered boxes),
 ``raw-boxes`` (every detector box, no filter), ``points`` (the dynamic points only).
