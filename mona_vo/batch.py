@@ -325,7 +325,8 @@ def start_local_ray(num_cpus: int | None = None, object_store_mb: int = 256) -> 
         cluster_mode = ray_constants.ENABLE_RAY_CLUSTER
         ray_constants.ENABLE_RAY_CLUSTER = False
         Config.initialize("")
-        ray.init(num_cpus=num_cpus or _cpu_count(), include_dashboard=False,
+        # address="local": always a new Ray of our own, never one `ray start` left running.
+        ray.init(address="local", num_cpus=num_cpus or _cpu_count(), include_dashboard=False,
                  _node_ip_address=LOOPBACK, object_store_memory=object_store_mb * 1024 * 1024,
                  log_to_driver=False, logging_level=logging.WARNING, configure_logging=False)
     except BaseException:
@@ -355,17 +356,62 @@ def ray_session(address: str | None = None, config: BatchConfig | None = None):
     if address in (None, "", "local"):
         stop = start_local_ray(config.local_cpus, config.object_store_mb)
     else:
+        # Token authentication stays on unless the user switched it off (RAY_AUTH_MODE=disabled):
+        # Ray itself turns it on for an explicit address only when told to.
+        env = _EnvPatch({} if os.environ.get("RAY_AUTH_MODE") else {"RAY_AUTH_MODE": "token"})
+        env.apply()
+        from ray._private import ray_constants
+        from ray._raylet import Config
+
+        Config.initialize("")
+        cluster_mode = ray_constants.ENABLE_RAY_CLUSTER
+        if _is_loopback_cluster(address):
+            # A cluster bound to loopback (`ray start --head --node-ip-address=127.0.0.1`): Ray
+            # would otherwise swap 127.0.0.1 for this machine's network address and never connect.
+            ray_constants.ENABLE_RAY_CLUSTER = False
         try:
             ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING,
                      configure_logging=False)
-        except (ConnectionError, ValueError, RuntimeError) as exc:
-            raise ConfigError(f"--address {address}: cannot join the Ray cluster "
-                              f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
-        stop = ray.shutdown
+        except (ConnectionError, ValueError, RuntimeError, ray.exceptions.RayError) as exc:
+            env.restore()
+            ray_constants.ENABLE_RAY_CLUSTER = cluster_mode
+            Config.initialize("")
+            text = " ".join(str(exc).split())[:300] or type(exc).__name__
+            raise ConfigError(f"--address {address}: cannot join the Ray cluster ({text}); with token "
+                              f"authentication every node and this machine need the cluster's "
+                              f"~/.ray/auth_token (or RAY_AUTH_TOKEN)") from None
+
+        def stop() -> None:
+            try:
+                ray.shutdown()
+            finally:
+                ray_constants.ENABLE_RAY_CLUSTER = cluster_mode
+                env.restore()
+                Config.initialize("")
     try:
         yield
     finally:
         stop()
+
+
+def _is_loopback_cluster(address: str) -> bool:
+    """Whether ``address`` ("auto": the cluster `ray start` made on this machine) is on loopback."""
+    import ipaddress
+
+    if address == "auto":
+        try:
+            from ray._private import services
+
+            address = services.get_ray_address_from_environment("auto", None) or ""
+        except Exception:
+            return False
+    host = str(address).rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def _one_line(exc: BaseException) -> str:

@@ -29,7 +29,7 @@ class ThumbnailStrip:
     """Collects ``count`` evenly spaced frames of a run as small mask overlays (memory: the
     thumbnails only) and writes them side by side as one JPEG."""
 
-    def __init__(self, n_frames: int, count: int = 6, height: int = 80):
+    def __init__(self, n_frames: int, count: int = 5, height: int = 80):
         self.height = int(height)
         n = max(int(n_frames), 0)
         self.wanted = set(np.unique(np.linspace(0, n - 1, min(count, n)).round().astype(int)).tolist()) if n else set()
@@ -73,12 +73,12 @@ class ThumbnailStrip:
 _NUMBERS = (
     ("frames", "frames", "{:.0f}"),
     ("posed_share", "posed %", "pct"),
-    ("low_confidence_share", "low-conf. %", "pct"),
-    ("mask_coverage", "mask cover %", "pct"),
-    ("keyframes", "keyframes", "{:.0f}"),
-    ("reprojection_rmse_px", "reproj. RMSE px", "{:.2f}"),
-    ("seconds", "seconds", "{:.1f}"),
-    ("frames_per_second", "frames/s", "{:.1f}"),
+    ("low_confidence_share", "low-conf %", "pct"),
+    ("mask_coverage", "mask %", "pct"),
+    ("keyframes", "keyfr.", "{:.0f}"),
+    ("reprojection_rmse_px", "RMSE px", "{:.2f}"),
+    ("seconds", "s", "{:.1f}"),
+    ("frames_per_second", "frames/s", "{:.2f}"),
 )
 
 _CSS = """
@@ -86,15 +86,16 @@ body{font:14px/1.4 system-ui,sans-serif;margin:16px;color:#222}
 h1{font-size:20px;margin:0 0 4px}
 .summary{color:#555;margin-bottom:12px}
 table{border-collapse:collapse}
-th,td{border-bottom:1px solid #ddd;padding:4px 8px;vertical-align:middle;text-align:right}
+th,td{border-bottom:1px solid #ddd;padding:3px 6px;vertical-align:middle;text-align:right}
 th{background:#f3f3f3;cursor:pointer;user-select:none;white-space:nowrap;position:sticky;top:0}
 th.sorted-asc::after{content:" \\25B2"} th.sorted-desc::after{content:" \\25BC"}
 td.text,th.text{text-align:left}
-.input{color:#777;font-size:12px;word-break:break-all;max-width:260px}
+.input{color:#777;font-size:11px;word-break:break-all;max-width:170px}
 .usable{color:#0a0;font-weight:600} .unusable{color:#b60;font-weight:600} .failed{color:#c00;font-weight:600}
 tr.failed-row td{background:#fff4f4}
-.reason{font-size:12px;color:#844;max-width:280px;text-align:left}
-img.strip{height:64px} img.plot{height:110px}
+.reason{font-size:12px;color:#844;max-width:200px;text-align:left;white-space:pre-line}
+img.strip{height:40px;display:block} img.plot{height:72px;display:block}
+td.node{font-size:11px;color:#777}
 .missing{display:inline-block;color:#c00;font-size:12px;border:1px dashed #c00;padding:4px}
 """
 
@@ -166,13 +167,16 @@ def _row_html(row: dict, page_dir: Path, here: bool) -> str:
         verdict, vclass, vsort = "usable", "usable", "2"
     else:
         verdict, vclass, vsort = "not usable", "unusable", "1"
+    reason = str(row.get("reason") or "")
+    if reason.startswith("not usable: "):
+        reason = reason[len("not usable: "):].replace("; ", "\n")
     cells = []
     link = _href(folder) or "."
     cells.append(f'<td class="text" data-v="{e(name.lower())}"><a href="{e(link)}/">{e(name)}</a>'
                  f'<div class="input">{e(str(row.get("input", "")))}</div></td>')
     cells.append(f'<td class="text" data-v="{vsort}"><span class="{vclass}">{verdict}</span>'
                  f'{" (skipped: done earlier)" if status == "skipped" else ""}'
-                 f'<div class="reason">{e(str(row.get("reason") or ""))}</div></td>')
+                 f'<div class="reason">{e(reason)}</div></td>')
     for fname, cls, alt in ((STRIP_NAME, "strip", "mask overlays"), (PLOT_NAME, "plot", "trajectory")):
         rel = _href(folder, fname)
         if status != "failed" and (page_dir / folder / fname).is_file():
@@ -189,7 +193,7 @@ def _row_html(row: dict, page_dir: Path, here: bool) -> str:
     for key, _, how in _NUMBERS:
         text, sort = _fmt(values.get(key), how)
         cells.append(f'<td data-v="{sort}">{text}</td>')
-    cells.append(f'<td class="text">{e(str(row.get("node") or ""))}</td>')
+    cells.append(f'<td class="text node">{e(str(row.get("node") or ""))}</td>')
     cls = ' class="failed-row"' if status == "failed" else ""
     return f"<tr{cls}>" + "".join(cells) + "</tr>"
 
