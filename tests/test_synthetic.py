@@ -466,3 +466,16 @@ def test_people_and_animals_are_articulated_and_cars_rigid():
                 assert len(parts) >= 6 and swing > 10.0, (seed, k, kind)
             seen.add(kind)
     assert seen == {"person", "animal", "car"}
+
+
+def test_describe_table_lists_each_seed_with_what_it_sampled():
+    from data_tools.synthetic import describe_seeds, describe_table
+
+    rows = describe_seeds("mixed", [4, 5], width=128, height=56, n_frames=8)
+    assert [r["seed"] for r in rows] == [4, 5]
+    assert [r["camera"] for r in rows] == ["creep", "pan"]
+    assert rows[1]["path_m"] == 0.0 and rows[0]["path_m"] > 0.03
+    for r in rows:
+        assert 40.0 <= r["hfov_deg"] <= 90.0 and 0.0 < r["coverage_mean"] <= r["coverage_max"] < 0.5
+    table = describe_table(rows).splitlines()
+    assert len(table) == 4 and table[2].startswith("| 4 | ") and "creep" in table[2]
