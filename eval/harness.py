@@ -32,7 +32,7 @@ import numpy as np
 from data_tools.atomic import write_text_atomic
 from data_tools.run_outputs import sigint_deferred
 from data_tools.tum import write_tum_trajectory
-from eval.metrics import Trajectory, evaluate_trajectory
+from eval.metrics import Trajectory, evaluate_rotation, evaluate_trajectory, gt_is_stationary
 from mona_vo.config import apply_overrides, to_dict
 from mona_vo.errors import ConfigError, MonaVoError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
@@ -46,6 +46,7 @@ VARIANTS = {
 }
 MIN_POSED_FRACTION = 0.8
 COLUMNS = ("sequence", "variant", "status", "ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path",
+           "rot_rmse_deg", "rot_max_deg", "est_translation_extent",
            "frames", "frames_with_pose", "low_confidence", "n_matched", "scale", "seconds",
            "frames_per_second")
 
@@ -118,10 +119,16 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
             write_tum_trajectory(run_dir / "trajectory.txt", vo.timestamps[posed], vo.poses[posed])
         row.update(frames=len(vo.timestamps), frames_with_pose=int(posed.sum()),
                    low_confidence=int(vo.low_confidence.sum()))
-        m = evaluate_trajectory(seq.gt, Trajectory(vo.timestamps[posed], vo.poses[posed]),
-                                max_diff=seq.max_diff)
-        row.update({k: v for k, v in m.to_dict().items()
-                    if k in ("ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path", "n_matched", "scale")})
+        est = Trajectory(vo.timestamps[posed], vo.poses[posed])
+        if gt_is_stationary(seq.gt):
+            # A tripod: no GT translation, so no Sim(3) ATE; orientation errors and how far the
+            # estimate wandered say whether the VO kept it rotation-only.
+            r = evaluate_rotation(seq.gt, est, max_diff=seq.max_diff)
+            row.update(r.to_dict())
+        else:
+            m = evaluate_trajectory(seq.gt, est, max_diff=seq.max_diff)
+            row.update({k: v for k, v in m.to_dict().items()
+                        if k in ("ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path", "n_matched", "scale")})
         ok = posed.sum() >= MIN_POSED_FRACTION * seq.n_frames
         row["status"] = "ok" if ok else f"failed: poses for {posed.sum()} of {seq.n_frames} frames"
     except MonaVoError as exc:

@@ -280,3 +280,54 @@ def evaluate_trajectory(gt: Trajectory, est: Trajectory, *, align: Alignment | s
                              rpe_rot_deg=rpe[PoseRelation.rotation_angle_deg], n_matched=int(n),
                              scale=scale, path_length=length, ate_percent_of_path=percent,
                              alignment=alignment)
+
+
+@dataclass(frozen=True)
+class RotationMetrics:
+    """Errors of a trajectory whose GT camera centre never moves (a tripod pan), where ATE after
+    Sim(3) alignment is undefined: there is no GT translation to fix a scale or a position."""
+
+    rot_rmse_deg: float  # orientation error RMSE after the best global rotation, degrees
+    rot_max_deg: float  # the largest per-pose orientation error, degrees
+    rpe_rot_deg: float  # RPE rotation-angle RMSE, delta 1 frame, degrees (evo's metric)
+    n_matched: int  # poses associated between GT and estimate (evo's rule)
+    est_translation_extent: float  # largest distance of an estimated centre from the first, est units
+
+    def to_dict(self) -> dict:
+        return {k: (float(v) if isinstance(v, float) else int(v)) for k, v in self.__dict__.items()}
+
+
+def gt_is_stationary(gt: Trajectory, tol: float = 1e-9) -> bool:
+    """True when every GT camera centre lies within ``tol`` (GT units) of the first one."""
+    p = np.asarray(gt.poses_T_world_cam, dtype=np.float64)[:, :3, 3]
+    return bool(len(p) and np.linalg.norm(p - p[0], axis=1).max() <= tol)
+
+
+def evaluate_rotation(gt: Trajectory, est: Trajectory, *, max_diff: float = 0.01,
+                      associate: bool = True) -> RotationMetrics:
+    """Orientation errors of ``est`` against ``gt`` after the one rotation that best aligns them
+    (the chordal mean of ``R_gt_i R_est_i^T``, projected onto SO(3)), for GT that only rotates.
+    Association as :func:`evaluate_trajectory`; ``gt`` and ``est`` are not modified."""
+    from evo.core import metrics
+    from evo.core.metrics import PoseRelation, StatisticsType, Unit
+
+    gt.check("ground truth")
+    est.check("estimate")
+    gt_m, est_m = _match(_to_evo(gt, "ground truth"), _to_evo(est, "estimate"),
+                         associate=associate, max_diff=float(max_diff))
+    R_gt = np.array([T[:3, :3] for T in gt_m.poses_se3])
+    R_est = np.array([T[:3, :3] for T in est_m.poses_se3])
+    U, _, Vt = np.linalg.svd(np.einsum("nij,nkj->ik", R_gt, R_est))
+    R_align = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    E = np.einsum("nji,jk,nkl->nil", R_gt, R_align, R_est)  # R_gt^T R_align R_est
+    from scipy.spatial.transform import Rotation
+
+    err = np.degrees(Rotation.from_matrix(E).magnitude())  # exact near zero, unlike arccos
+    rpe = metrics.RPE(PoseRelation.rotation_angle_deg, delta=1, delta_unit=Unit.frames,
+                      rel_delta_tol=0.01, all_pairs=True)
+    rpe.process_data((gt_m, est_m))
+    c = est_m.positions_xyz
+    return RotationMetrics(rot_rmse_deg=float(np.sqrt(np.mean(err ** 2))), rot_max_deg=float(err.max()),
+                           rpe_rot_deg=float(rpe.get_statistic(StatisticsType.rmse)),
+                           n_matched=int(gt_m.num_poses),
+                           est_translation_extent=float(np.linalg.norm(c - c[0], axis=1).max()))
