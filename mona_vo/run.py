@@ -133,11 +133,16 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "mean_mask_coverage": float(result.mask_coverage.mean()) if result.n_frames else 0.0,
         "calibration": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
                         "source": "given" if calib_given else
+                                  "estimated from the first frames" if _focal_estimated(result) else
                                   f"{config.assumed_hfov_deg:g}-degree field-of-view guess",
-                        "focal_used": vo.focal},
+                        "focal_used": vo.focal,
+                        "focal_estimate": _focal_evidence(result)},
         "seconds": per_stage,
         "frames_per_second": {k: round(v, 2) for k, v in fps.items() if v is not None},
         "dropped": dict(vo.drops),
+        # Translation evidence over the clip: rotation-free parallax vs the tracking noise floor.
+        "parallax": getattr(vo, "parallax", None),
+        "global_refinement": getattr(vo, "refine", None) or None,
         "status_counts": {s: vo.status.count(s) for s in sorted(set(vo.status))},
         "low_confidence_frames": low,
         "frame_status": dict(zip(result.names, vo.status)),
@@ -146,6 +151,16 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "config": to_dict(config),
         "machine": {"cpu_count": _cpu_count(), "platform": platform.platform()},
     }
+
+
+def _focal_estimated(result) -> bool:
+    return bool(getattr(getattr(result, "calibration", None), "used", False))
+
+
+def _focal_evidence(result) -> dict | None:
+    """What the focal-length estimate tried and found (mona_vo.calibration), None with --calib."""
+    est = getattr(result, "calibration", None)
+    return est.as_dict() if est is not None else None
 
 
 def _cpu_count() -> int:
