@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from data_tools.synthetic import SceneConfig, SyntheticScene
-from eval.metrics import Trajectory, evaluate_trajectory
+from eval.metrics import Trajectory, evaluate_rotation, evaluate_trajectory, gt_is_stationary
+from mona_vo.errors import EvalError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 
 
@@ -47,13 +48,28 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig) -
     result = estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=masks, config=config)
     wall = time.perf_counter() - t0
     gt = Trajectory(np.arange(len(frames), dtype=float), scene.poses())
-    m = evaluate_trajectory(gt, Trajectory(result.vo.timestamps, result.vo.poses))
+    est = Trajectory(result.vo.timestamps, result.vo.poses)
+    nan = float("nan")
+    errors = {"ate": nan, "ate_pct": nan, "rpe_trans": nan, "rpe_rot_deg": nan, "path_m": 0.0,
+              "rot_rmse_deg": nan, "est_translation_extent": nan, "status": "ok"}
+    try:
+        if gt_is_stationary(gt):
+            # A tripod pan: no ATE exists; the orientation error and how far the estimate
+            # wandered tell whether the VO kept it rotation-only.
+            r = evaluate_rotation(gt, est)
+            errors.update(rpe_rot_deg=r.rpe_rot_deg, rot_rmse_deg=r.rot_rmse_deg,
+                          est_translation_extent=r.est_translation_extent)
+        else:
+            m = evaluate_trajectory(gt, est)
+            errors.update(ate=m.ate, ate_pct=m.ate_percent_of_path, rpe_trans=m.rpe_trans,
+                          rpe_rot_deg=m.rpe_rot_deg, path_m=m.path_length)
+    except EvalError as exc:  # one sequence that cannot be scored must not end the benchmark
+        errors["status"] = f"failed: {exc}"
     n = len(frames)
     vo_seconds = sum(v for k, v in result.timings.items() if k.startswith("vo."))
     mask_seconds = sum(v for k, v in result.timings.items() if k.startswith("masks."))
     return {
-        "variant": variant, "ate": m.ate, "ate_pct": m.ate_percent_of_path,
-        "rpe_trans": m.rpe_trans, "rpe_rot_deg": m.rpe_rot_deg, "path_m": m.path_length,
+        "variant": variant, **errors,
         "frames": n, "frames_with_pose": int(np.isfinite(result.vo.poses).all(axis=(1, 2)).sum()),
         "low_confidence": int(result.vo.low_confidence.sum()),
         "keyframes": int(result.vo.is_keyframe.sum()),
@@ -90,6 +106,13 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _nanstat(fn, values: np.ndarray) -> float:
+    """fn over the finite values; NaN when there are none (e.g. ATE of tripod pans)."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    return float(fn(v)) if len(v) else float("nan")
+
+
 def summarize(rows: list[dict], baseline: str = "none") -> list[dict]:
     """Per (preset, variant), over seeds: ATE % mean with its spread (standard deviation over
     seeds, min and max), the paired difference to the ``baseline`` variant on the same seeds
@@ -110,16 +133,18 @@ def summarize(rows: list[dict], baseline: str = "none") -> list[dict]:
         for r in every:
             by_seed.setdefault(r["seed"], []).append(r["ate_pct"])
         out.append({"preset": preset, "variant": variant, "n": len(sel),
-                    "ate_pct_mean": float(np.mean(ate)),
-                    "ate_pct_std": float(np.std(ate, ddof=1)) if len(ate) > 1 else 0.0,
-                    "ate_pct_min": float(np.min(ate)),
-                    "ate_pct_max": float(np.max(ate)),
-                    "d_vs_baseline_mean": float(np.mean(diff)) if len(diff) else float("nan"),
-                    "d_vs_baseline_std": float(np.std(diff, ddof=1)) if len(diff) > 1 else float("nan"),
-                    "repeat_spread_pct": float(max(max(v) - min(v) for v in by_seed.values())),
-                    "ate_mean": float(np.mean([r["ate"] for r in sel])),
-                    "rpe_trans_mean": float(np.mean([r["rpe_trans"] for r in sel])),
-                    "rpe_rot_mean": float(np.mean([r["rpe_rot_deg"] for r in sel])),
+                    "ate_pct_mean": _nanstat(np.nanmean, ate),
+                    "ate_pct_std": _nanstat(lambda a: np.nanstd(a, ddof=1), ate) if len(ate) > 1 else 0.0,
+                    "ate_pct_min": _nanstat(np.nanmin, ate),
+                    "ate_pct_max": _nanstat(np.nanmax, ate),
+                    "d_vs_baseline_mean": _nanstat(np.nanmean, diff),
+                    "d_vs_baseline_std": _nanstat(lambda a: np.nanstd(a, ddof=1), diff) if len(diff) > 1 else float("nan"),
+                    "repeat_spread_pct": _nanstat(np.nanmax, np.array([max(v) - min(v) for v in by_seed.values()])),
+                    "ate_mean": _nanstat(np.nanmean, np.array([r["ate"] for r in sel])),
+                    "rpe_trans_mean": _nanstat(np.nanmean, np.array([r["rpe_trans"] for r in sel])),
+                    "rpe_rot_mean": _nanstat(np.nanmean, np.array([r["rpe_rot_deg"] for r in sel])),
+                    "rot_rmse_mean": _nanstat(np.nanmean, np.array([r["rot_rmse_deg"] for r in sel])),
+                    "scored": int(sum(r["status"] == "ok" for r in sel)),
                     "vo_fps_mean": float(np.mean([r["vo_fps"] for r in sel])),
                     "mask_ms_mean": float(np.mean([r["mask_ms_per_frame"] for r in sel])),
                     "all_frames_posed": all(r["frames_with_pose"] == r["frames"] for r in sel)})
@@ -130,7 +155,10 @@ def format_row(r: dict) -> str:
     return (f"{r['preset']:13s} seed {r['seed']:2d} {r['variant']:5s} cov {100 * r['coverage']:5.1f}%  "
             f"ATE {r['ate']:.4f} m {r['ate_pct']:7.3f}% of {r['path_m']:5.2f} m  "
             f"RPE {r['rpe_trans']:.4f} m {r['rpe_rot_deg']:.3f} deg  VO {r['vo_fps']:5.1f} fps  "
-            f"masks {r['mask_ms_per_frame']:5.1f} ms/frame  low-conf {r['low_confidence']}")
+            f"masks {r['mask_ms_per_frame']:5.1f} ms/frame  low-conf {r['low_confidence']}"
+            + (f"  rot {r['rot_rmse_deg']:.3f} deg, est. translation {r['est_translation_extent']:.3g}"
+               if np.isfinite(r["rot_rmse_deg"]) else "")
+            + ("" if r["status"] == "ok" else f"  {r['status']}"))
 
 
 def format_summary(summary: list[dict], baseline: str = "none") -> str:
@@ -179,6 +207,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=50)
     ap.add_argument("--size", default="1024x436")
     ap.add_argument("--set", action="append", default=[], help="config override key=value")
+    ap.add_argument("--out", metavar="FILE", help="also write the rows and the summary as JSON here")
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of each sequence, to measure the run-to-run spread (default 1)")
     args = ap.parse_args(argv)
@@ -190,7 +219,14 @@ def main(argv=None) -> int:
                      n_frames=args.frames, width=w, height=h, config=cfg,
                      on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats))
     print()
-    print(format_summary(summarize(rows)))
+    summary = summarize(rows)
+    print(format_summary(summary))
+    if args.out:
+        import json
+
+        from data_tools.atomic import write_text_atomic
+
+        write_text_atomic(args.out, json.dumps({"rows": rows, "summary": summary}, indent=1, default=float) + "\n")
     print(f"peak memory {peak_memory_mb():.0f} MB")
     return 0
 
