@@ -185,26 +185,54 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def split_means(rows: list[dict]) -> list[dict]:
+    """Per prompt mode: mean J and F over the tuning sequences, the validation ones and all,
+    and the lowest J (the issue's "none below" bound)."""
+    out = []
+    for mode in dict.fromkeys(r["prompt"] for r in rows):
+        sel = [r for r in rows if r["prompt"] == mode]
+        for split in ("tune", "validate", "all"):
+            part = [r for r in sel if split == "all" or r["split"] == split]
+            if part:
+                out.append({"prompt": mode, "split": split, "sequences": len(part),
+                            "J": float(np.mean([r["J"] for r in part])),
+                            "F": float(np.mean([r["F"] for r in part])),
+                            "J_min": float(min(r["J"] for r in part))})
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m eval.mask_bench [--seeds 0,1,2] [--frames 30]``: speed, DAVIS, synthetic."""
+    """``python -m eval.mask_bench [--parts speed,davis,synthetic] [--presets ...] [--seeds 0,1,2]
+    [--frames 30] [--size 1024x436] [--modes boxes]``: speed, DAVIS J/F, generated scenes."""
     import argparse
 
     parser = argparse.ArgumentParser(prog="python -m eval.mask_bench", description=__doc__)
-    parser.add_argument("--seeds", default="0,1,2", help="synthetic scene seeds, comma-separated")
+    parser.add_argument("--parts", default="speed,davis,synthetic", help="which benchmarks to run")
+    parser.add_argument("--presets", default=",".join(("static",) + DYNAMIC_PRESETS),
+                        help="generator presets for the synthetic part, comma-separated")
+    parser.add_argument("--seeds", default="0,1,2", help="synthetic scene seeds, e.g. 0,1,2 or 100-111")
     parser.add_argument("--frames", type=int, default=30, help="frames per synthetic scene")
+    parser.add_argument("--size", default="1024x436", help="synthetic image size WxH")
+    parser.add_argument("--modes", default="boxes", help="DAVIS prompt modes: boxes,points,raw-boxes")
     args = parser.parse_args(argv)
-    seeds = tuple(int(x) for x in args.seeds.split(",") if x.strip())
-    print("== speed (ms per frame per stage) ==")
-    print(format_table(speed_rows()))
-    if (SHARED_DATA / "davis2016").is_dir():
-        print("\n== DAVIS-2016 (J, F) per prompt mode ==")
-        print(format_table(davis_rows()))
-    try:
-        import data_tools.synthetic  # noqa: F401
-    except ImportError:
-        print("\n(data_tools.synthetic not available: synthetic benchmark skipped)")
-    else:
-        rows = synthetic_rows(seeds=seeds, n_frames=args.frames)
+    parts = set(args.parts.split(","))
+    seeds: list[int] = []
+    for item in (x.strip() for x in args.seeds.split(",") if x.strip()):
+        a, _, b = item.partition("-")
+        seeds += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    w, h = (int(v) for v in args.size.split("x"))
+    if "speed" in parts:
+        print("== speed (ms per frame per stage) ==")
+        print(format_table(speed_rows()), flush=True)
+    if "davis" in parts and (SHARED_DATA / "davis2016").is_dir():
+        rows = davis_rows(modes=tuple(args.modes.split(",")))
+        print("\n== DAVIS-2016 (J, F) per sequence and prompt mode ==")
+        print(format_table(rows))
+        print("\n== DAVIS-2016 means: tuning part, validation part, all ==")
+        print(format_table(split_means(rows)), flush=True)
+    if "synthetic" in parts:
+        rows = synthetic_rows(presets=tuple(args.presets.split(",")), seeds=seeds,
+                              n_frames=args.frames, width=w, height=h)
         print("\n== synthetic scenes, per seed ==")
         print(format_table(rows))
         print("\n== synthetic scenes, per preset (J = mean IoU; static: fp_area) ==")
