@@ -65,7 +65,10 @@ class VOConfig:
     init_min_parallax_deg: float = setting(0.5, ge=0, le=45)  # median ray angle needed to
                                             # initialise the map, degrees
     init_min_inliers: int = setting(40, ge=5)  # essential-matrix inliers needed to initialise
-    init_max_frames: int = setting(20, ge=1)  # frames to wait for parallax before rotation-only poses
+    init_min_rotation_free_px: float = setting(1.0, gt=0)  # and the median parallax left after
+                                            # the best homography rotation, px (a pan leaves tracking
+                                            # noise, a few tenths of a pixel; measured in pixels, it
+                                            # does not depend on the focal length being right)
     init_keyframes: int = setting(4, ge=2)  # keyframes of the first window (two-view pair included)
     keyframe_parallax_px: float = setting(12.0, gt=0)  # median rotation-free track motion since
                                             # the last keyframe, px
@@ -421,7 +424,7 @@ class VisualOdometry:
             # the parallax left after the best homography rotation tells the truth.
             par_h = rotation_parallax_deg(s0.uv[i0][rel.inliers], s.uv[i1][rel.inliers], k0.intr,
                                           intr, R)
-            ok = float(np.median(par_h)) >= 0.5 * self.cfg.init_min_parallax_deg
+            ok = np.radians(float(np.median(par_h))) * intr.fx >= self.cfg.init_min_rotation_free_px
         if ok and self._initialise(t, gray, obs, intr, mask, rel, common[rel.inliers]):
             self.timings["pose"] += time.perf_counter() - t0
             return
