@@ -65,10 +65,10 @@ class VOConfig:
     init_min_parallax_deg: float = setting(0.5, ge=0, le=45)  # median ray angle needed to
                                             # initialise the map, degrees
     init_min_inliers: int = setting(40, ge=5)  # essential-matrix inliers needed to initialise
-    init_min_rotation_free_px: float = setting(1.0, gt=0)  # and the median parallax left after
+    init_min_rotation_free_px: float = setting(2.0, gt=0)  # and the median parallax left after
                                             # the best homography rotation, px (a pan leaves tracking
-                                            # noise, a few tenths of a pixel; measured in pixels, it
-                                            # does not depend on the focal length being right)
+                                            # noise: up to ~1 px with blur and noise; measured in
+                                            # pixels, it does not depend on the focal length)
     init_keyframes: int = setting(4, ge=2)  # keyframes of the first window (two-view pair included)
     keyframe_parallax_px: float = setting(12.0, gt=0)  # median rotation-free track motion since
                                             # the last keyframe, px
