@@ -9,4 +9,5 @@ command -v "$PY" >/dev/null || PY=python3
 # resolution of "torch" pulls a multi-GB CUDA build.
 .venv/bin/pip install --quiet "torch==2.13.0"
 .venv/bin/pip install --quiet -c constraints.txt -e '.[test]'
+.venv/bin/pip check   # the installed set is consistent
 .venv/bin/mona-vo --version
