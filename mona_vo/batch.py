@@ -333,7 +333,17 @@ def start_local_ray(num_cpus: int | None = None, object_store_mb: int = 256) -> 
         env.restore()
         raise
 
+    return _stopper(env, cluster_mode)
+
+
+def _stopper(env: "_EnvPatch", cluster_mode: bool) -> Callable[[], None]:
+    """The shutdown of a Ray this process started or joined: Ray stops, then Ray's cluster-mode
+    constant, the environment and Ray's config are put back as they were before."""
     def stop() -> None:
+        import ray
+        from ray._private import ray_constants
+        from ray._raylet import Config
+
         try:
             ray.shutdown()
         finally:
@@ -381,13 +391,7 @@ def ray_session(address: str | None = None, config: BatchConfig | None = None):
                               f"authentication every node and this machine need the cluster's "
                               f"~/.ray/auth_token (or RAY_AUTH_TOKEN)") from None
 
-        def stop() -> None:
-            try:
-                ray.shutdown()
-            finally:
-                ray_constants.ENABLE_RAY_CLUSTER = cluster_mode
-                env.restore()
-                Config.initialize("")
+        stop = _stopper(env, cluster_mode)
     try:
         yield
     finally:
