@@ -283,6 +283,25 @@ def _waves(rng, t, rate, period_range, max_amplitude=np.inf):
     return amplitude * np.sin(omega * t + rng.uniform(0.0, 2.0 * np.pi))
 
 
+def _mover_path(rng, tf: np.ndarray, kind: str, yaw: float, speed: float, anchor: int,
+                xz_anchor: np.ndarray, sub: int) -> tuple[np.ndarray, np.ndarray]:
+    """A mover's ground-plane path: heading (world yaw ``yaw`` plus a slow turn and waves) and
+    speed (with a slow swell) on the fine time grid ``tf``, integrated to positions, sampled every
+    ``sub``-th step and anchored at frame ``anchor`` on ``xz_anchor``. Returns ((N, 2) positions,
+    the fine-grid heading). The draws from ``rng`` keep their order (the legacy presets' pixels
+    are pinned by checksum)."""
+    deg = np.pi / 180.0
+    turn = rng.uniform(-1.0, 1.0) * deg if kind == "car" else rng.uniform(-2.0, 2.0) * deg
+    heading = yaw + turn * (tf - anchor)
+    heading = heading + _waves(rng, tf, rng.uniform(0.0, 1.0) * deg, (20.0, 60.0))
+    spd = speed * (1.0 + 0.15 * np.sin(2 * np.pi * tf / rng.uniform(20, 60)
+                                      + rng.uniform(0, 2 * np.pi)))
+    vel = spd[:, None] * np.stack([np.sin(heading), np.cos(heading)], axis=1)
+    pos = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * (vel[1:] + vel[:-1]) / sub, axis=0)])
+    pos = pos[::sub]
+    return pos - pos[anchor] + xz_anchor, heading
+
+
 def _footprint_corners(centre_xz, heading, half_xz):
     """(N, 4, 2) ground corners x, z of upright boxes with centres (N, 2) and headings (N,)."""
     c, s = np.cos(heading), np.sin(heading)
@@ -1190,16 +1209,7 @@ class SyntheticScene:
         else:
             rel = np.pi + rng.uniform(-20.0, 20.0) * deg
             speed = rng.uniform(0.05, 0.15) if kind == "car" else rng.uniform(0.025, 0.05)
-        turn = rng.uniform(-1.0, 1.0) * deg if kind == "car" else rng.uniform(-2.0, 2.0) * deg
-        # Heading and speed on the fine grid, integrated to positions, anchored at `anchor`.
-        heading = cam_yaw + rel + turn * (tf - anchor)
-        heading = heading + _waves(rng, tf, rng.uniform(0.0, 1.0) * deg, (20.0, 60.0))
-        spd = speed * (1.0 + 0.15 * np.sin(2 * np.pi * tf / rng.uniform(20, 60)
-                                          + rng.uniform(0, 2 * np.pi)))
-        vel = spd[:, None] * np.stack([np.sin(heading), np.cos(heading)], axis=1)
-        pos = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * (vel[1:] + vel[:-1]) / sub, axis=0)])
-        pos = pos[::sub]
-        pos = pos - pos[anchor] + xz_anchor
+        pos, heading = _mover_path(rng, tf, kind, cam_yaw + rel, speed, anchor, xz_anchor, sub)
         return _MoverProposal(kind=kind, half=size / 2.0, xz=pos, heading=heading[::sub].copy())
 
     def _check(self, prop: _MoverProposal, accepted, covs, rule=None) -> np.ndarray | None:
@@ -1504,15 +1514,7 @@ class SyntheticScene:
             rel = np.pi + rng.uniform(-20.0, 20.0) * deg
         else:
             rel = rng.uniform(-np.pi, np.pi)
-        turn = rng.uniform(-1.0, 1.0) * deg if kind == "car" else rng.uniform(-2.0, 2.0) * deg
-        heading = cam_yaw + rel + turn * (tf - anchor)
-        heading = heading + _waves(rng, tf, rng.uniform(0.0, 1.0) * deg, (20.0, 60.0))
-        spd = speed * (1.0 + 0.15 * np.sin(2 * np.pi * tf / rng.uniform(20, 60)
-                                          + rng.uniform(0, 2 * np.pi)))
-        vel = spd[:, None] * np.stack([np.sin(heading), np.cos(heading)], axis=1)
-        pos = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * (vel[1:] + vel[:-1]) / sub, axis=0)])
-        pos = pos[::sub]
-        pos = pos - pos[anchor] + xz_anchor
+        pos, heading = _mover_path(rng, tf, kind, cam_yaw + rel, speed, anchor, xz_anchor, sub)
         return _MoverProposal(xz=pos, heading=heading[::sub].copy(), rel=float(rel), **common)
 
     def _mover_parts(self, rng, prop: _MoverProposal, k: int, colour: int) -> list[_Box]:
