@@ -45,10 +45,11 @@ VARIANTS = {
     "gt": ("gt", {}),
 }
 MIN_POSED_FRACTION = 0.8
+MIN_MATCHED_FRACTION = 0.9   # fewer posed frames matched to GT than this: a warning on the row
 COLUMNS = ("sequence", "variant", "status", "ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path",
            "rot_rmse_deg", "rot_max_deg", "est_translation_extent",
            "frames", "frames_with_pose", "low_confidence", "n_matched", "scale", "seconds",
-           "frames_per_second")
+           "frames_per_second", "warning")
 
 
 @dataclass
@@ -129,6 +130,11 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
             m = evaluate_trajectory(seq.gt, est, max_diff=seq.max_diff)
             row.update({k: v for k, v in m.to_dict().items()
                         if k in ("ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path", "n_matched", "scale")})
+            if m.n_matched < MIN_MATCHED_FRACTION * posed.sum():
+                # evo's RPE pairs consecutive *matched* poses: across unmatched runs a "1-frame"
+                # pair spans many frames and can dominate the RPE.
+                row["warning"] = (f"only {m.n_matched} of {int(posed.sum())} poses matched a GT "
+                                  f"timestamp within {seq.max_diff:g} s; RPE pairs span the gaps")
         ok = posed.sum() >= MIN_POSED_FRACTION * seq.n_frames
         row["status"] = "ok" if ok else f"failed: poses for {posed.sum()} of {seq.n_frames} frames"
     except MonaVoError as exc:
@@ -283,4 +289,7 @@ def markdown_table(summary: list[dict], rows: list[dict], method_names: dict[str
     for r in rows:
         lines.append(f"| {r['sequence']} | {r['variant']} | {r.get('status')} | {_fmt(r.get('ate'), 4)} | "
                      f"{_fmt(r.get('rpe_trans'), 4)} | {_fmt(r.get('rpe_rot_deg'))} |")
+    warned = [r for r in rows if r.get("warning")]
+    if warned:
+        lines += [""] + [f"Warning, {r['sequence']} [{r['variant']}]: {r['warning']}." for r in warned]
     return "\n".join(lines) + "\n"

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 
 from mona_vo import __version__
@@ -223,6 +224,9 @@ def build_parser() -> argparse.ArgumentParser:
     eu.add_argument("--calib", metavar="fx,fy,cx,cy|FILE", help="intrinsics (default: the folder's calib.txt, else a guess)")
     eu.add_argument("--out", required=True, metavar="DIR", help="output folder")
     eu.add_argument("--workers", type=int, default=1, help="runs in parallel (processes)")
+    eu.add_argument("--max-diff", type=float, default=None, metavar="SECONDS",
+                    help="GT association tolerance (default 0.02, the TUM benchmark's own; evo's "
+                         "default is 0.01)")
     eu.add_argument("--address", metavar="local|auto|HOST:PORT", default=None,
                     help="run on Ray as `batch` does, one task per run: local (an embedded local Ray on "
                          "this machine's cores), auto or HOST:PORT (a cluster); replaces --workers")
@@ -454,9 +458,11 @@ def _print_summary(rows) -> None:
         ate = "-" if s["ate"] is None else f"{s['ate']:.4f}"
         rpe = "-" if s["rpe_trans"] is None else f"{s['rpe_trans']:.4f} m / {s['rpe_rot_deg']:.3f} deg"
         print(f"{s['variant']:15s} ATE {ate}  RPE {rpe}  ok {s['ok']}/{s['sequences']}")
-    failed = [r for r in rows if r.get("status") != "ok"]
-    for r in failed:
-        print(f"  {r['sequence']} [{r['variant']}]: {r.get('status')}")
+    for r in rows:
+        if r.get("status") != "ok":
+            print(f"  {r['sequence']} [{r['variant']}]: {r.get('status')}")
+        elif r.get("warning"):
+            print(f"  {r['sequence']} [{r['variant']}]: warning: {r['warning']}")
 
 
 def _check_workers(workers: int) -> None:
@@ -501,7 +507,7 @@ def _cmd_eval_sintel(args) -> int:
 
 def _cmd_eval_tum(args) -> int:
     from data_tools.calibration import parse_calibration
-    from eval.datasets import tum_sequences
+    from eval.datasets import TUM_MAX_DIFF, tum_sequences
     from eval.harness import evaluate, parse_variants
 
     config = _pipeline_config(args)
@@ -510,9 +516,13 @@ def _cmd_eval_tum(args) -> int:
     if "gt" in variants:
         raise ConfigError("TUM-layout folders carry no moving-object masks: variant 'gt' is not available")
     calib = parse_calibration(args.calib) if args.calib else None
-    seqs = tum_sequences(args.root, calib=calib)
+    max_diff = TUM_MAX_DIFF if args.max_diff is None else args.max_diff
+    if not (math.isfinite(max_diff) and max_diff > 0):
+        raise ConfigError(f"--max-diff must be a positive number of seconds, got {args.max_diff!r}")
+    seqs = tum_sequences(args.root, calib=calib, max_diff=max_diff)
+    # The tolerance changes the metrics of finished runs, so it is part of what a run is.
     rows = evaluate(seqs, variants, args.out, config=config, workers=args.workers, address=args.address,
-                    extra_hash={"dataset": "tum"}, progress=not args.quiet)
+                    extra_hash={"dataset": "tum", "max_diff": max_diff}, progress=not args.quiet)
     _print_summary(rows)
     print(f"wrote {args.out}/results.md")
     return 0 if all(r.get("status") == "ok" for r in rows) else 1

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from data_tools.synthetic import SceneConfig, SyntheticScene, write_sintel
-from data_tools.tum import read_tum_trajectory, write_tum_layout
+from data_tools.tum import read_tum_trajectory, write_tum_layout, write_tum_trajectory
 
 
 def cli(exe, *args):
@@ -99,6 +99,36 @@ def test_eval_tum_on_a_generated_tum_folder_with_exact_gt(mona_vo_exe, tmp_path)
     ts, _ = read_tum_trajectory(out / "none" / "tum_seq" / "trajectory.txt")
     assert np.allclose(ts, stamps, atol=1e-6)   # stamped with rgb.txt's times
     assert float(row["ate_percent_of_path"]) < 5.0
+
+
+def test_eval_tum_associates_within_20_ms_and_warns_when_frames_go_unmatched(mona_vo_exe, tmp_path):
+    # The GT clock runs 15 ms behind the camera's on frames 6-11 (Bonn's streams drift this way):
+    # the TUM tolerance (20 ms) still matches every frame; evo's 10 ms drops those six, and the
+    # row and results.md say so, since RPE pairs then span the gap.
+    scene = SyntheticScene(SceneConfig(width=384, height=164, n_frames=16, preset="static", seed=2))
+    stamps = 1311868164.0 + np.arange(len(scene)) / 30.0
+    root = tmp_path / "tum_seq"
+    write_tum_layout(root, stamps, (f.image for f in scene), scene.poses(), scene.intrinsics)
+    gt_stamps = stamps.copy()
+    gt_stamps[6:12] += 0.015
+    write_tum_trajectory(root / "groundtruth.txt", gt_stamps, scene.poses())
+    out = tmp_path / "eval"
+    proc = cli(mona_vo_exe, "eval", "tum", "--root", root, "--variants", "none", "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    row = _rows(out)[0]
+    assert int(row["n_matched"]) == 16 and not row.get("warning")
+    out10 = tmp_path / "eval10"
+    proc = cli(mona_vo_exe, "eval", "tum", "--root", root, "--variants", "none", "--out", out10,
+               "--max-diff", "0.01")
+    assert proc.returncode == 0, proc.stderr
+    row = _rows(out10)[0]
+    assert int(row["n_matched"]) == 10
+    assert "only 10 of 16 poses matched" in row["warning"] and "warning" in proc.stdout
+    assert "only 10 of 16 poses matched" in (out10 / "results.md").read_text()
+    proc = cli(mona_vo_exe, "eval", "tum", "--root", root, "--variants", "none", "--out",
+               tmp_path / "bad", "--max-diff", "-1")
+    assert proc.returncode == 1 and "--max-diff" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "bad").exists()
 
 
 def test_eval_tum_on_the_bonn_crowd_clip(mona_vo_exe, shared_subdir, tmp_path):
