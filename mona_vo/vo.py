@@ -460,6 +460,11 @@ class VisualOdometry:
         row0 = self._add_keyframe(k0.frame, k0.T_world_cam, k0.intr, k0.obs)
         if not m.frames.written(k0.frame):
             m.frames.write(k0.frame, FrameStatus.KEYFRAME, int(good.sum()), ref_kf=row0, T=np.eye(4))
+        elif m.frames.ref_kf[k0.frame] < 0:
+            # A re-start from the frame where tracking was lost (extrapolated): that frame is
+            # this map's first keyframe, so it must follow it when the global refinement moves
+            # the keyframes (left behind, it showed as a 7.8 deg jump on Bonn).
+            m.frames.attach(k0.frame, row0, k0.T_world_cam)
         # Every frame that waited gets a real pose now, by PnP on the new landmarks; one that
         # sees too few of them keeps its provisional pose (between the two keyframes:
         # interpolated; before the first: rotation-only).
@@ -490,7 +495,9 @@ class VisualOdometry:
                 self._write_relative(w.frame, FrameStatus.INTERPOLATED, 0, row0,
                                      interpolate_pose(k0.T_world_cam, T1, a))
             else:
-                self._write_absolute(w.frame, FrameStatus.ROTATION_ONLY, n, w.T_world_cam)
+                # Before the first keyframe: its rotation was measured against it, so it
+                # follows it too.
+                self._write_relative(w.frame, FrameStatus.ROTATION_ONLY, n, row0, w.T_world_cam)
         self._make_keyframe(t, gray, obs, intr, mask, T1, int(good.sum()), bootstrapping=True)
         return True
 

@@ -216,6 +216,15 @@ class FrameTable:
         self.status[t] = _STATUS_LIST.index(status)
         self.inliers[t], self.ref_kf[t], self.T[t] = inliers, ref_kf, T
 
+    def attach(self, t: int, ref_kf: int, T_world_kf: np.ndarray) -> None:
+        """Tie frame t, written with an absolute pose, to keyframe row ``ref_kf`` (now at
+        T_world_kf): its pose and status stay as written, but from now on it moves with that
+        keyframe, as frames written relative to a keyframe do when a refinement moves it."""
+        if self.status[t] < 0 or self.ref_kf[t] >= 0:
+            raise RuntimeError(f"frame {t}: only a frame written with an absolute pose can be attached")
+        self.T[t] = np.linalg.solve(T_world_kf, self.T[t])
+        self.ref_kf[t] = ref_kf
+
     def written(self, t: int) -> bool:
         return bool(self.status[t] >= 0)
 

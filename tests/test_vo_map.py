@@ -58,3 +58,22 @@ def test_frame_status_is_written_once_and_relative_poses_follow_their_keyframe()
     np.testing.assert_allclose(P[1][:3, 3], [5, 0, 1])
     np.testing.assert_allclose(P[2], np.eye(4))       # absolute poses stay put
     assert m.frames.status_of(1) is FrameStatus.TRACKED
+
+
+def test_an_attached_frame_keeps_its_pose_and_status_then_follows_its_keyframe():
+    # A frame written with an absolute pose (extrapolated where tracking was lost) that becomes
+    # a new map's first keyframe must move with it when a refinement moves the keyframes.
+    m = VOMap()
+    m.frames.append(0.0)
+    T_frame = make_pose(np.eye(3), [0.5, 0.2, 0.1])
+    m.frames.write(0, FrameStatus.EXTRAPOLATED, 0, T=T_frame)
+    T_kf = make_pose(np.eye(3), [0.5, 0.0, 0.0])
+    row = m.keyframes.add(0, T_kf, INTR, 1, np.zeros(0, np.int64), np.zeros((0, 2)),
+                          np.zeros(0, bool))
+    m.frames.attach(0, row, T_kf)
+    np.testing.assert_allclose(m.all_poses()[0], T_frame, atol=1e-12)
+    assert m.frames.status_of(0) is FrameStatus.EXTRAPOLATED
+    m.keyframes.T_world_cam[row] = make_pose(np.eye(3), [2.5, 0.0, 0.0])
+    np.testing.assert_allclose(m.pose_of(0)[:3, 3], [2.5, 0.2, 0.1])
+    with pytest.raises(RuntimeError, match="absolute pose"):
+        m.frames.attach(0, row, T_kf)      # already relative
