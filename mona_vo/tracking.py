@@ -46,6 +46,31 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
 
 
+def exposure_gain(prev: np.ndarray, gray: np.ndarray, pts_prev: np.ndarray, pts_now: np.ndarray,
+                  *, min_points: int = 20) -> float:
+    """Brightness ratio gray / prev of the same surfaces: the median over points tracked from
+    ``pts_prev`` (in prev) to about ``pts_now`` (in gray; a prediction is enough) of the ratio of
+    local mean grey levels around them (boxes of about 28 px, so a few pixels of prediction
+    error do not matter). Measured on matched points, not on whole images, so that a pan onto
+    brighter scenery is not taken for an exposure change; the median ignores movers and
+    saturated or dark spots. 1.0 with fewer than ``min_points`` usable points."""
+    h, w = gray.shape
+    s = 4
+    size = (max(w // s, 1), max(h // s, 1))
+
+    def local_mean(img, pts):
+        small = cv2.blur(cv2.resize(img.astype(np.float32), size, interpolation=cv2.INTER_AREA), (7, 7))
+        c = np.clip((pts[:, 0] / s).astype(int), 0, size[0] - 1)
+        r = np.clip((pts[:, 1] / s).astype(int), 0, size[1] - 1)
+        return small[r, c].astype(np.float64)
+
+    a, b = local_mean(prev, pts_prev), local_mean(gray, pts_now)
+    ok = (a > 8) & (a < 247) & (b > 8) & (b < 247)
+    if ok.sum() < min_points:
+        return 1.0
+    return float(np.median(b[ok] / a[ok]))
+
+
 class Tracker(ABC):
     """Frame-to-frame point tracker with persistent track ids."""
 
@@ -76,15 +101,22 @@ class LKTracker(Tracker):
     fb_max_px:    a track whose backward-tracked point lands further than this from its start is
                   lost (occlusion, drift onto another surface, aperture problem).
     border_px:    tracks closer than this to the image border are lost (LK windows get clipped).
+    gain:         compensate a global exposure change (:func:`exposure_gain`) before tracking:
+                  LK assumes constant brightness, auto exposure scales the whole image, and a
+                  gain stays a gain after gamma encoding.
     """
 
+    GAIN_TOLERANCE = 0.01   # smaller brightness changes are left alone: a rescaled 8-bit image
+                             # is requantised, which costs more than a 1 % change
+
     def __init__(self, win_size: int = 21, levels: int = 3, fb_max_px: float = 0.7,
-                 border_px: float = 4.0, iterations: int = 30):
+                 border_px: float = 4.0, iterations: int = 30, gain: bool = True):
         self.win = (int(win_size), int(win_size))
         self.levels = int(levels)
         self.fb_max_px = float(fb_max_px)
         self.border_px = float(border_px)
         self.criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(iterations), 0.01)
+        self.gain = bool(gain)
         self._pyr = None
         self._shape = None
         self._ids = np.zeros(0, np.int64)
@@ -126,6 +158,13 @@ class LKTracker(Tracker):
             return self.live()
         p0 = self._pts.reshape(-1, 1, 2)
         guess = (self._pts + self._vel).reshape(-1, 1, 2)
+        if self.gain:
+            g = exposure_gain(prev, gray, self._pts, guess.reshape(-1, 2))
+            # The brighter image is scaled down, so that no grey level clips at 255.
+            if g > 1.0 + self.GAIN_TOLERANCE:
+                pyr = cv2.convertScaleAbs(gray, alpha=1.0 / g)
+            elif g < 1.0 - self.GAIN_TOLERANCE:
+                prev = cv2.convertScaleAbs(prev, alpha=g)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, pyr, p0, guess, winSize=self.win,
                                               maxLevel=self.levels, criteria=self.criteria,
                                               flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
