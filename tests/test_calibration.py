@@ -12,11 +12,11 @@ from mona_vo.errors import ConfigError
 W, H = 640, 360
 
 
-def _tracks(f_true, *, turn_deg=0.4, step=0.04, n_frames=24, seed=0, noise=0.3):
+def _tracks(f_true, *, turn_deg=0.4, step=0.04, n_frames=24, seed=0, noise=0.3, pp_offset=(0, 0)):
     """Tracks of a static point field seen by a camera walking and turning: frame -> (ids, uv)."""
     rng = np.random.default_rng(seed)
     pts = rng.uniform([-8, -3, 4], [8, 3, 25], (500, 3))
-    cx, cy = (W - 1) / 2, (H - 1) / 2
+    cx, cy = (W - 1) / 2 + pp_offset[0], (H - 1) / 2 + pp_offset[1]
     out = {}
     for t in range(n_frames):
         R = Rotation.from_euler("yx", [np.radians(turn_deg) * t, np.radians(0.3 * turn_deg) * np.sin(0.3 * t)]).as_matrix()
@@ -47,6 +47,29 @@ def test_focal_recovered_from_a_wrong_guess(true_hfov):
     assert abs(np.log(best["focal_px"] / f_true)) < abs(np.log(est.guess / f_true)) + 0.2
     d = est.as_dict()
     assert d["used"] and d["rotation_deg"] > 5 and d["parallax_deg"] > 0.1
+
+
+def test_a_pan_gives_focal_length_and_principal_point_from_the_rotations():
+    # A tripod pan with the principal point 9 px off the centre: no parallax, so no
+    # reconstruction can see the focal length, but only the true K makes the views rotations.
+    f_true = 0.5 * W / np.tan(np.radians(80) / 2)
+    est = focal_from_tracks(_tracks(f_true, turn_deg=1.5, step=0.0, pp_offset=(9.0, -5.0)), W, _guess())
+    assert est.used and "pure rotation" in est.reason, est.reason
+    assert abs(est.focal - f_true) < 0.01 * f_true, (est.focal, f_true)
+    intr = est.intrinsics_for(W, H)
+    assert abs(intr.cx - ((W - 1) / 2 + 9.0)) < 2.0 and abs(intr.cy - ((H - 1) / 2 - 5.0)) < 2.0
+    assert est.as_dict()["principal_point"] == [round(intr.cx, 2), round(intr.cy, 2)]
+
+
+def test_a_walking_camera_is_not_taken_for_a_pan():
+    # Turning 0.6 deg per frame while walking in a narrow view: the rotation model's curve has a
+    # minimum, but not a sharp one (it fits no focal length well), so the reconstruction is used.
+    f_true = 0.5 * W / np.tan(np.radians(45) / 2)
+    est = focal_from_tracks(_tracks(f_true, turn_deg=0.6), W, _guess())
+    assert est.used and "pure rotation" not in est.reason, est.reason
+    assert est.rotation_model["score"] < FocalConfig().rotation_min_score
+    assert est.rotation_model["rmse_px"] > 1.5 * est.freed_rmse_px
+    assert est.cx is None and est.intrinsics_for(W, H).cx == (W - 1) / 2
 
 
 def test_no_motion_keeps_the_guess_and_says_why():
