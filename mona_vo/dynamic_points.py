@@ -100,6 +100,7 @@ import numpy as np
 from mona_vo.config import check_fields, setting
 from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
 from mona_vo.errors import ConfigError
+from mona_vo.flow import vector_lengths
 from mona_vo.geometry import cauchy_dynamic_probability, find_essential
 from mona_vo.point_selection import grid_points, random_points, texture_score
 from mona_vo.tracking import Tracker, to_gray
@@ -176,7 +177,8 @@ class CameraMotion:
     H_b_a:                (3, 3) float64 homography, pixels of a -> pixels of b, or None.
     F_b_a:                (3, 3) float64 fundamental matrix, ``x_b^T F x_a = 0``, or None.
     n_anchors:            correspondences the models were fitted to.
-    homography_ratio:     anchors within the inlier distance of H over those within it of E.
+    homography_ratio:     anchors within the inlier distance of H over those within it of E
+                          (NaN when the model was imposed: not both were fitted).
     H_inf_b_a:            (3, 3) float64 ``K R K^-1``: where a point at infinity of a is seen in
                           b (the rotation part of the essential matrix), or None.
     epipole_b:            (3,) float64 ``K t`` (homogeneous; x_b ~ H_inf x_a + t_scale/Z * K t
@@ -223,7 +225,7 @@ def sampson_residuals(F_b_a: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -
     num = np.sum(xb * Fxa, axis=1)
     den = Fxa[:, 0] ** 2 + Fxa[:, 1] ** 2 + Ftxb[:, 0] ** 2 + Ftxb[:, 1] ** 2
     d = num / np.sqrt(np.maximum(den, 1e-300))
-    normal = Fxa[:, :2] / np.maximum(np.linalg.norm(Fxa[:, :2], axis=1, keepdims=True), 1e-300)
+    normal = Fxa[:, :2] / np.maximum(vector_lengths(Fxa[:, :2])[:, None], 1e-300)
     return d[:, None] * normal
 
 
@@ -268,6 +270,43 @@ def motion_residuals(motion: CameraMotion, pts_a: np.ndarray, pts_b: np.ndarray)
     return np.full((len(np.asarray(pts_a).reshape(-1, 2)), 2), np.nan)
 
 
+def _fit_homography(pa: np.ndarray, pb: np.ndarray, flag: int,
+                    threshold_px: float) -> np.ndarray | None:
+    """(3, 3) float64 homography fitted robustly to the correspondences, or None."""
+    H, _ = cv2.findHomography(pa, pb, flag, threshold_px, maxIters=2000, confidence=0.999)
+    return H if H is not None and H.shape == (3, 3) else None
+
+
+def _fit_epipolar(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, flag: int, threshold_px: float,
+                  cheirality: bool, max_wrong_frac: float, min_parallax: float):
+    """(F, H_inf, epipole) of an essential matrix fitted robustly (see
+    :func:`fit_camera_motion`); Nones for what could not be fitted or determined."""
+    E, inl_ok = find_essential(pa, pb, K, threshold_px, 0.999, flag)   # mona_vo.geometry
+    if E is None or E.shape[0] < 3 or E.shape[1] != 3:
+        return None, None, None
+    E = E[:3]
+    Ki = np.linalg.inv(K)
+    F = Ki.T @ E @ Ki
+    F = F / max(np.linalg.norm(F), 1e-300)
+    if not cheirality:
+        return F, None, None
+    # recoverPose picks, of E's four (R, t), the one placing most inliers in front of both
+    # cameras: x_b ~ K (R X_a + t).
+    inl = inl_ok.astype(np.uint8).reshape(-1, 1)
+    _, R, t, _ = cv2.recoverPose(E, pa, pb, K, mask=inl.copy())
+    H_inf = K @ R @ Ki
+    epipole = (K @ t).ravel()
+    # The sign test needs a translation the anchors determine: most of them must show
+    # parallax, on the side of the infinity point a static point can reach.
+    sel = inl.ravel() > 0
+    wrong = np.any(cheirality_residuals(H_inf, epipole, pa[sel], pb[sel]) != 0, axis=1)
+    parallax = np.linalg.norm(pb[sel] - _dehomogenise(_homogeneous(pa[sel]) @ H_inf.T), axis=1)
+    if not (len(wrong) and wrong.mean() <= max_wrong_frac
+            and np.median(parallax) >= min_parallax * threshold_px):
+        return F, None, None
+    return F, H_inf, epipole
+
+
 def fit_camera_motion(pts_a: np.ndarray, pts_b: np.ndarray, intrinsics: Intrinsics, *,
                       threshold_px: float, inlier_px: float, homography_min_ratio: float = 0.6,
                       method: str = "usac_accurate", cheirality: bool = True,
@@ -284,8 +323,10 @@ def fit_camera_motion(pts_a: np.ndarray, pts_b: np.ndarray, intrinsics: Intrinsi
     of :func:`cheirality_residuals`, when the anchors determine the translation: at most
     ``cheirality_max_wrong_frac`` of E's inliers fail the test themselves and their median
     parallax (distance from the infinity point) is at least ``cheirality_min_parallax *
-    threshold_px``. ``model`` ('homography' or 'epipolar') imposes the choice (when that model
-    could be fitted), e.g. the one the sparse anchors chose for the same frames.
+    threshold_px``. ``model`` ('homography' or 'epipolar') imposes the choice, e.g. the one the
+    sparse anchors chose for the same frames: then only that model is fitted (the other only
+    when it cannot be: a fit costs milliseconds, and the masker fits every frame), and
+    ``homography_ratio`` is NaN.
     """
     pa = np.ascontiguousarray(pts_a, np.float64).reshape(-1, 2)
     pb = np.ascontiguousarray(pts_b, np.float64).reshape(-1, 2)
@@ -293,41 +334,31 @@ def fit_camera_motion(pts_a: np.ndarray, pts_b: np.ndarray, intrinsics: Intrinsi
     if n < 8:
         return CameraMotion(NO_MODEL, None, None, n, 0.0)
     flag = ROBUST_METHODS[method]
-    H, _ = cv2.findHomography(pa, pb, flag, threshold_px, maxIters=2000, confidence=0.999)
-    if H is None or H.shape != (3, 3):
-        H = None
-    K = intrinsics.K
-    E, inl_ok = find_essential(pa, pb, K, threshold_px, 0.999, flag)   # mona_vo.geometry
-    inl = inl_ok.astype(np.uint8).reshape(-1, 1)
-    F = H_inf = epipole = None
-    if E is not None and E.shape[0] >= 3 and E.shape[1] == 3:
-        E = E[:3]
-        Ki = np.linalg.inv(K)
-        F = Ki.T @ E @ Ki
-        F = F / max(np.linalg.norm(F), 1e-300)
-        if cheirality:
-            # recoverPose picks, of E's four (R, t), the one placing most inliers in front of
-            # both cameras: x_b ~ K (R X_a + t).
-            _, R, t, _ = cv2.recoverPose(E, pa, pb, K, mask=inl.copy())
-            H_inf = K @ R @ Ki
-            epipole = (K @ t).ravel()
-            # The sign test needs a translation the anchors determine: most of them must show
-            # parallax, on the side of the infinity point a static point can reach.
-            sel = inl.ravel() > 0
-            wrong = np.any(cheirality_residuals(H_inf, epipole, pa[sel], pb[sel]) != 0, axis=1)
-            parallax = np.linalg.norm(pb[sel] - _dehomogenise(_homogeneous(pa[sel]) @ H_inf.T),
-                                      axis=1)
-            if not (len(wrong) and wrong.mean() <= cheirality_max_wrong_frac
-                    and np.median(parallax) >= cheirality_min_parallax * threshold_px):
-                H_inf = epipole = None
+
+    def homography():
+        return _fit_homography(pa, pb, flag, threshold_px)
+
+    def epipolar():
+        return _fit_epipolar(pa, pb, intrinsics.K, flag, threshold_px, cheirality,
+                             cheirality_max_wrong_frac, cheirality_min_parallax)
+
+    H = homography() if model != EPIPOLAR else None
+    F, H_inf, epipole = epipolar() if model != HOMOGRAPHY else (None, None, None)
+    if model == EPIPOLAR and F is None:
+        H = homography()
+    elif model == HOMOGRAPHY and H is None:
+        F, H_inf, epipole = epipolar()
     if H is None and F is None:
         return CameraMotion(NO_MODEL, None, None, n, 0.0)
-    h_in = float(np.mean(np.linalg.norm(transfer_residuals(H, pa, pb), axis=1) <= inlier_px)) \
-        if H is not None else 0.0
-    f_in = float(np.mean(np.linalg.norm(sampson_residuals(F, pa, pb), axis=1) <= inlier_px)) \
-        if F is not None else 0.0
-    ratio = h_in / max(f_in, 1e-9)
-    use_h = ratio >= homography_min_ratio if model is None else model == HOMOGRAPHY
+    if model is None:
+        h_in = float(np.mean(np.linalg.norm(transfer_residuals(H, pa, pb), axis=1) <= inlier_px)) \
+            if H is not None else 0.0
+        f_in = float(np.mean(np.linalg.norm(sampson_residuals(F, pa, pb), axis=1) <= inlier_px)) \
+            if F is not None else 0.0
+        ratio = h_in / max(f_in, 1e-9)
+        use_h = ratio >= homography_min_ratio
+    else:
+        ratio, use_h = float("nan"), model == HOMOGRAPHY
     if H is not None and (F is None or use_h):
         return CameraMotion(HOMOGRAPHY, H, F, n, ratio, H_inf, epipole)
     return CameraMotion(EPIPOLAR, H, F, n, ratio, H_inf, epipole)
@@ -339,17 +370,17 @@ def residual_map(motion: CameraMotion, flow: np.ndarray,
     of a dense (h, w, 2) flow field under ``motion`` (fitted in the same pixel units). Zero where
     the optional (h, w) bool ``valid`` is False, and everywhere when the motion has no model."""
     h, w = flow.shape[:2]
+    out = np.zeros((h, w), np.float32)
     if motion.model == NO_MODEL:
-        return np.zeros((h, w), np.float32)
-    gy, gx = np.mgrid[0:h, 0:w].astype(np.float64)
-    p0 = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    p1 = p0 + flow.reshape(-1, 2)
-    r = np.linalg.norm(motion_residuals(motion, p0, p1), axis=1)
+        return out
+    # Only the valid pixels are computed (the masker asks for a few of them at times).
+    ys, xs = np.nonzero(np.ones((h, w), bool) if valid is None else valid)
+    p0 = np.stack([xs, ys], axis=1).astype(np.float64)
+    p1 = p0 + flow[ys, xs]
+    r = vector_lengths(motion_residuals(motion, p0, p1))
     r[~np.isfinite(r)] = 0.0
-    r = r.reshape(h, w).astype(np.float32)
-    if valid is not None:
-        r[~valid] = 0.0
-    return r
+    out[ys, xs] = r
+    return out
 
 
 # --------------------------------------------------------------------------- probability, threshold

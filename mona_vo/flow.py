@@ -68,6 +68,14 @@ class Flow(ABC):
         seen at (x + u, y + v) in image1.
         """
 
+    def compute_resized(self, image0: np.ndarray, image1: np.ndarray, width: int,
+                        height: int) -> tuple[np.ndarray, float]:
+        """The flow of :meth:`compute` resampled to (height, width, 2) float32, vectors in pixels
+        of that size (:func:`resize_flow`), and its ``m_t`` (:func:`mean_flow_magnitude`) in
+        input pixels."""
+        full = self.compute(image0, image1)
+        return resize_flow(full, width, height), mean_flow_magnitude(full)
+
 
 def mean_flow_magnitude(flow: np.ndarray) -> float:
     """The paper's ``m_t = (1/|Omega|) sum_x ||u_t(x)||``: mean Euclidean length, in pixels, of a
@@ -78,6 +86,13 @@ def mean_flow_magnitude(flow: np.ndarray) -> float:
     if not finite.any():
         return 0.0
     return float(mag[finite].mean())
+
+
+def vector_lengths(v: np.ndarray) -> np.ndarray:
+    """Lengths of the 2-vectors along the last axis of ``v`` (..., 2): the values of
+    ``np.linalg.norm(v, axis=-1)``, bit for bit, ten times faster (numpy reduces over a last
+    axis of two slowly)."""
+    return np.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1])
 
 
 def resize_flow(flow: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -124,8 +139,8 @@ def chain_flows(flows, *, max_change_px: float = np.inf,
         step = cv2.remap(np.asarray(f, np.float32), gx + out[..., 0], gy + out[..., 1],
                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         if np.isfinite(max_change_px) or np.isfinite(max_change_frac):
-            change = np.linalg.norm(step - step_prev, axis=2)
-            valid &= change <= max_change_px + max_change_frac * np.linalg.norm(step_prev, axis=2)
+            change = vector_lengths(step - step_prev)
+            valid &= change <= max_change_px + max_change_frac * vector_lengths(step_prev)
         out += step
         valid &= inside(out)
         step_prev = step
@@ -193,6 +208,16 @@ class DISFlow(Flow):
     def compute(self, image0: np.ndarray, image1: np.ndarray) -> np.ndarray:
         height, width = image0.shape[:2]
         return resize_flow(self.compute_reduced(image0, image1), width, height)
+
+    def compute_resized(self, image0: np.ndarray, image1: np.ndarray, width: int,
+                        height: int) -> tuple[np.ndarray, float]:
+        # From the working-size flow, never upsampled: at 1024 x 436 the upsampling and m_t
+        # over the upsampled field cost 4 ms, a third of the DIS itself.
+        small = self.compute_reduced(image0, image1)
+        H, W = image0.shape[:2]
+        h, w = small.shape[:2]
+        m_t = mean_flow_magnitude(small * np.float32([W / w, H / h]))
+        return resize_flow(small, width, height), m_t
 
 
 FLOWS.register("raft", "mona_vo.neural.raft:RaftFlow")

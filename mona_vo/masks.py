@@ -78,8 +78,7 @@ from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, NO_MODEL, DynamicPoint
                                     adaptive_threshold, classify_window, default_intrinsics,
                                     fit_camera_motion, residual_map, turning_fast)
 from mona_vo.errors import ConfigError, InputError
-from mona_vo.flow import (FLOWS, DISFlowConfig, Flow, chain_flows, forward_warp_mask,
-                          mean_flow_magnitude, resize_flow)
+from mona_vo.flow import FLOWS, DISFlowConfig, Flow, chain_flows, forward_warp_mask
 from mona_vo import mask_evidence
 from mona_vo.mask_evidence import EvidenceConfig
 from mona_vo.point_selection import grid_points, texture_score
@@ -255,7 +254,8 @@ class MonaMasker:
         self._seconds: dict[int, dict[str, float]] = {}
         self._prev_map: np.ndarray | None = None        # motion map of the last frame emitted
         self._prev_flow: np.ndarray | None = None       # and its flow to the next frame
-        self._prev_mask: np.ndarray | None = None       # and its mask, full resolution
+        self._prev_small: np.ndarray | None = None      # and its mask, analysis resolution
+                                                        # (None when empty)
         self._last_image: np.ndarray | None = None      # the last frame pushed
         self._prev_image: np.ndarray | None = None      # the one before it
         self._logodds: np.ndarray | None = None         # accumulated evidence, last frame emitted
@@ -323,10 +323,8 @@ class MonaMasker:
     def _add_flow(self, p: int, image0, image1) -> None:
         """Flow of frame p (image0) to image1, kept at the analysis resolution, and its m_t."""
         t0 = time.perf_counter()
-        full = self.flow.compute(image0, image1)
-        self._m[p] = mean_flow_magnitude(full)
         w, h = self._analysis_size()
-        self._flows[p] = resize_flow(full, w, h)
+        self._flows[p], self._m[p] = self.flow.compute_resized(image0, image1, w, h)
         self._seconds[p]["flow"] += time.perf_counter() - t0
 
     def _classify(self, window, final: bool) -> None:
@@ -374,12 +372,15 @@ class MonaMasker:
         if gap > 1 and not valid.all():
             # Pixels whose chain left the image: the single-step flow still sees them.
             first, valid1 = chain_flows([self._flows[p]])
-            short = self._residual(p, score, first, valid1, 1, self._m[p], model)
+            short = self._residual(p, score, first, valid1, 1, self._m[p], model,
+                                   where=valid1 & ~valid)
             out = np.where(valid, out, short)
         return out
 
-    def _residual(self, p, score, cum, valid, gap, m_pair, model) -> np.ndarray:
-        """Residual map (full-resolution px per frame) of the flow ``cum`` over ``gap`` frames."""
+    def _residual(self, p, score, cum, valid, gap, m_pair, model, where=None) -> np.ndarray:
+        """Residual map (full-resolution px per frame) of the flow ``cum`` over ``gap`` frames,
+        the camera motion fitted at the ``valid`` pixels; computed at the pixels ``where``
+        (default: the valid ones), zero elsewhere."""
         cfg = self.config
         dp = cfg.dynamic_points
         h, w = cum.shape[:2]
@@ -396,7 +397,7 @@ class MonaMasker:
                                    inlier_px=theta_pair * gap * scale,
                                    homography_min_ratio=dp.homography_min_ratio,
                                    method=dp.robust_method, model=model)
-        return residual_map(motion, cum, valid) / (gap * scale)
+        return residual_map(motion, cum, valid if where is None else where) / (gap * scale)
 
     def _carry_forward(self, prev_map: np.ndarray) -> np.ndarray:
         """The previous frame's motion map moved into this frame along the flow between them
@@ -412,11 +413,15 @@ class MonaMasker:
     def _carry_prior(self) -> np.ndarray:
         """The previous frame's mask at the analysis resolution, carried into this frame along
         the flow between them."""
-        flow = self._prev_flow
-        fh, fw = flow.shape[:2]
-        small = cv2.resize(self._prev_mask.astype(np.float32), (fw, fh),
-                           interpolation=cv2.INTER_AREA) > 0.5
-        return forward_warp_mask(small, flow)
+        return forward_warp_mask(self._prev_small, self._prev_flow)
+
+    def _analysis_mask(self, mask: np.ndarray) -> np.ndarray | None:
+        """A full-resolution mask at the analysis resolution (area average > 0.5), None when
+        the mask is empty."""
+        if not mask.any():
+            return None
+        w, h = self._analysis_size()
+        return cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0.5
 
     def _emit_ready(self, final: bool) -> list[MaskFrame]:
         out = []
@@ -459,7 +464,7 @@ class MonaMasker:
             motion_theta = max(theta, cfg.dynamic_points.noise_factor * spread)
         dyn_xy = dyn.dynamic_points
         carried_prev = None
-        if self._prev_mask is not None and self._prev_flow is not None and self._prev_mask.any():
+        if self._prev_small is not None and self._prev_flow is not None:
             carried_prev = self._carry_prior()
         prior = carried_prev if cfg.mask_prior and cfg.prompt != "points" else None
         t_ev = time.perf_counter()
@@ -498,7 +503,9 @@ class MonaMasker:
                 mask &= self._upsample(allowed, image.shape[:2])
         else:
             mask = np.zeros(image.shape[:2], bool)
-        stability, reliable = self._reliability(mask, carried_prev)
+        # Reduced once: this frame's stability and the next frame's prior both use it.
+        small = self._analysis_mask(mask)
+        stability, reliable = self._reliability(mask, small, carried_prev)
         t4 = time.perf_counter()
         sec["motion_map"] += t_ev - t0
         sec["evidence"] += t1b - t_ev
@@ -509,22 +516,21 @@ class MonaMasker:
         # later frames' m_t are their own (or, for the last frame, its backward flow's).
         del self._images[p]
         self._prev_map, self._prev_flow = mmap, self._flows.pop(p, None)
-        self._prev_mask = mask
+        self._prev_small = small
         self._logodds, self._found = logodds, found
         self._m.pop(p - 1, None)
         index = self._index.pop(p)
         return MaskFrame(index, mask, dyn, boxes, kept, filt, mmap, sec, logodds, stability,
                          reliable)
 
-    def _reliability(self, mask: np.ndarray, carried_prev: np.ndarray | None
-                     ) -> tuple[float, bool]:
-        """(stability, reliable) of a frame's mask (see :class:`MaskFrame`)."""
+    def _reliability(self, mask: np.ndarray, small: np.ndarray | None,
+                     carried_prev: np.ndarray | None) -> tuple[float, bool]:
+        """(stability, reliable) of a frame's mask (see :class:`MaskFrame`); ``small``: the mask
+        at the analysis resolution (:meth:`_analysis_mask`)."""
         cfg = self.config
         coverage = float(mask.mean())
         stability = float("nan")
-        if carried_prev is not None and carried_prev.any() and mask.any():
-            h, w = carried_prev.shape
-            small = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0.5
+        if carried_prev is not None and carried_prev.any() and small is not None:
             union = np.count_nonzero(small | carried_prev)
             stability = np.count_nonzero(small & carried_prev) / union if union else float("nan")
         reliable = coverage <= cfg.vo_max_coverage and not (

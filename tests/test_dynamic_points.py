@@ -12,7 +12,7 @@ from mona_vo.conventions import Intrinsics
 from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, DynamicPointsConfig,
                                     DynamicPointsTracker, TrackWindow, adaptive_threshold,
                                     cauchy_dynamic_probability, classify_window,
-                                    fit_camera_motion)
+                                    fit_camera_motion, residual_map)
 from mona_vo.tracking import LKTracker
 
 W, H = 256, 112
@@ -124,6 +124,23 @@ def test_camera_motion_model_choice():
     P = window.points
     par = fit_camera_motion(P[0, :144], P[4, :144], INTR, threshold_px=0.5, inlier_px=0.5 * 4)
     assert par.model == EPIPOLAR
+
+
+def test_an_imposed_model_fits_only_that_model_with_the_same_residuals():
+    window, _, _ = parallax_window(noise_px=0.05)
+    pa, pb = window.points[0, :144], window.points[4, :144]
+    free = fit_camera_motion(pa, pb, INTR, threshold_px=0.5, inlier_px=2.0)
+    flow = np.random.default_rng(1).normal(0, 2, (H, W, 2)).astype(np.float32)
+    valid = np.ones((H, W), bool)
+    valid[:, :20] = False
+    for model in (HOMOGRAPHY, EPIPOLAR):
+        imposed = fit_camera_motion(pa, pb, INTR, threshold_px=0.5, inlier_px=2.0, model=model)
+        assert imposed.model == model and np.isnan(imposed.homography_ratio)
+        assert (imposed.F_b_a is None) == (model == HOMOGRAPHY)
+        assert (imposed.H_b_a is None) == (model == EPIPOLAR)
+        reference = residual_map(dataclasses.replace(free, model=model), flow, valid)
+        np.testing.assert_array_equal(residual_map(imposed, flow, valid), reference)
+        assert not reference[:, :20].any() and reference[:, 20:].all()
 
 
 def textured(h, w, seed=0):

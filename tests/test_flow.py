@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from mona_vo.flow import (FLOWS, DISFlow, DISFlowConfig, chain_flows, forward_warp_mask,
-                          mean_flow_magnitude, resize_flow)
+from mona_vo.flow import (FLOWS, DISFlow, DISFlowConfig, Flow, chain_flows, forward_warp_mask,
+                          mean_flow_magnitude, resize_flow, vector_lengths)
 
 # Measured on alley_1 frame_0002 -> frame_0003 (clean) with the default DIS settings (medium
 # preset at half resolution): EPE 0.47 px over the non-occluded pixels (GT mean motion 3.0 px).
@@ -48,6 +48,28 @@ def test_reduced_resolution_flow_is_in_full_resolution_pixels():
     assert flow.shape == (112, 224, 2)
     centre = flow[30:80, 40:180].reshape(-1, 2)
     np.testing.assert_allclose(np.median(centre, axis=0), [dx, dy], atol=0.3)
+
+
+def test_dis_resized_flow_and_m_t_match_the_full_resolution_ones():
+    big = textured(160, 260)
+    im0, im1 = big[10:122, 10:234], big[14:126, 4:228]     # content moved by (+6, -4)
+    dis = DISFlow(DISFlowConfig(scale=0.5))
+    full = dis.compute(im0, im1)
+    small, m_t = dis.compute_resized(im0, im1, 56, 28)
+    generic_small, generic_m_t = Flow.compute_resized(dis, im0, im1, 56, 28)
+    assert small.shape == (28, 56, 2) and small.dtype == np.float32
+    assert m_t == pytest.approx(mean_flow_magnitude(full), rel=0.02)
+    assert generic_m_t == mean_flow_magnitude(full)
+    np.testing.assert_allclose(np.median(small[5:23, 10:46].reshape(-1, 2), axis=0),
+                               [6 / 4, -4 / 4], atol=0.1)
+    assert np.abs(small - generic_small).mean() < 0.05
+
+
+def test_vector_lengths_are_numpys_norms_bit_for_bit():
+    v = np.random.default_rng(0).normal(0, 3, (50, 40, 2)).astype(np.float32)
+    np.testing.assert_array_equal(vector_lengths(v), np.linalg.norm(v, axis=-1))
+    np.testing.assert_array_equal(vector_lengths(v[0].astype(np.float64)),
+                                  np.linalg.norm(v[0].astype(np.float64), axis=1))
 
 
 def test_mean_flow_magnitude_is_mean_vector_length():

@@ -66,17 +66,17 @@ def test_too_large_or_flickering_masks_are_not_handed_to_the_vo():
     masker._size = (w, h)
     big = np.zeros((h, w), bool)
     big[:, :40] = True                             # 62 % of the frame
-    assert masker._reliability(big, None)[1] is False
+    assert masker._reliability(big, big, None)[1] is False
     small = np.zeros((h, w), bool)
     small[5:15, 5:15] = True
     carried_same = small.copy()
     carried_elsewhere = np.zeros((h, w), bool)
     carried_elsewhere[25:35, 40:50] = True         # last frame's mask was somewhere else
-    stab, ok = masker._reliability(small, carried_same)
+    stab, ok = masker._reliability(small, small, carried_same)
     assert ok and stab == 1.0
-    stab, ok = masker._reliability(small, carried_elsewhere)
+    stab, ok = masker._reliability(small, small, carried_elsewhere)
     assert not ok and stab == 0.0
-    stab, ok = masker._reliability(small, None)    # a first mask after none passes
+    stab, ok = masker._reliability(small, small, None)    # a first mask after none passes
     assert ok and np.isnan(stab)
 
 
