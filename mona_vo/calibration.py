@@ -36,7 +36,7 @@ from mona_vo.conventions import Intrinsics, invert_pose, make_pose, rotation_ang
 from mona_vo.config import setting
 from mona_vo.errors import ConfigError
 from mona_vo.tracking import LKTracker, to_gray
-from mona_vo.two_view import relative_pose, triangulate
+from mona_vo.two_view import bearings, kabsch_rotation, relative_pose, triangulate
 
 log = logging.getLogger(__name__)
 
@@ -186,15 +186,11 @@ def _rotation_residuals(pairs, f: float, cx: float, cy: float) -> np.ndarray:
     """Pixel residuals (2M,) of matched pixels between view pairs each explained by a pure
     rotation (Kabsch on the rays of focal length f, principal point cx, cy)."""
     c = np.array([cx, cy])
+    intr = Intrinsics(f, f, cx, cy)
     out = []
     for ua, ub in pairs:
-        ra = np.c_[(ua - c) / f, np.ones(len(ua))]
-        rb = np.c_[(ub - c) / f, np.ones(len(ub))]
-        ra /= np.linalg.norm(ra, axis=1, keepdims=True)
-        rb /= np.linalg.norm(rb, axis=1, keepdims=True)
-        U, _, Vt = np.linalg.svd(rb.T @ ra)
-        R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt   # rays of a -> b
-        q = ra @ R.T
+        ra = bearings(ua, intr)
+        q = ra @ kabsch_rotation(bearings(ub, intr), ra).T     # rays of a turned into b
         with np.errstate(divide="ignore", invalid="ignore"):
             out.append((f * q[:, :2] / q[:, 2:3] + c - ub).ravel())
     r = np.concatenate(out) if out else np.zeros(0)

@@ -46,25 +46,32 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
 
 
-def exposure_gain(prev: np.ndarray, gray: np.ndarray, pts_prev: np.ndarray, pts_now: np.ndarray,
-                  *, min_points: int = 20) -> float:
-    """Brightness ratio gray / prev of the same surfaces: the median over points tracked from
-    ``pts_prev`` (in prev) to about ``pts_now`` (in gray; a prediction is enough) of the ratio of
-    local mean grey levels around them (boxes of about 28 px, so a few pixels of prediction
-    error do not matter). Measured on matched points, not on whole images, so that a pan onto
-    brighter scenery is not taken for an exposure change; the median ignores movers and
-    saturated or dark spots. 1.0 with fewer than ``min_points`` usable points."""
+_GAIN_STEP = 4   # brightness maps are 4x smaller than the image, then 7 x 7 box means (~28 px)
+
+
+def brightness_map(gray: np.ndarray) -> np.ndarray:
+    """Local mean grey levels of an (H, W) image, 4x downsampled, for :func:`exposure_gain`
+    (computed once per frame: each frame is the next one's reference)."""
     h, w = gray.shape
-    s = 4
-    size = (max(w // s, 1), max(h // s, 1))
+    size = (max(w // _GAIN_STEP, 1), max(h // _GAIN_STEP, 1))
+    return cv2.blur(cv2.resize(gray.astype(np.float32), size, interpolation=cv2.INTER_AREA), (7, 7))
 
-    def local_mean(img, pts):
-        small = cv2.blur(cv2.resize(img.astype(np.float32), size, interpolation=cv2.INTER_AREA), (7, 7))
-        c = np.clip((pts[:, 0] / s).astype(int), 0, size[0] - 1)
-        r = np.clip((pts[:, 1] / s).astype(int), 0, size[1] - 1)
-        return small[r, c].astype(np.float64)
 
-    a, b = local_mean(prev, pts_prev), local_mean(gray, pts_now)
+def exposure_gain(prev_map: np.ndarray, now_map: np.ndarray, pts_prev: np.ndarray,
+                  pts_now: np.ndarray, *, min_points: int = 20) -> float:
+    """Brightness ratio now / prev of the same surfaces: the median over points tracked from
+    ``pts_prev`` (in prev) to about ``pts_now`` (in now; a prediction is enough) of the ratio of
+    the local mean grey levels around them (:func:`brightness_map` of each frame; boxes of about
+    28 px, so a few pixels of prediction error do not matter). Measured on matched points, not
+    on whole images, so that a pan onto brighter scenery is not taken for an exposure change;
+    the median ignores movers and saturated or dark spots. 1.0 with fewer than ``min_points``
+    usable points."""
+    def at(m, pts):
+        c = np.clip((pts[:, 0] / _GAIN_STEP).astype(int), 0, m.shape[1] - 1)
+        r = np.clip((pts[:, 1] / _GAIN_STEP).astype(int), 0, m.shape[0] - 1)
+        return m[r, c].astype(np.float64)
+
+    a, b = at(prev_map, pts_prev), at(now_map, pts_now)
     ok = (a > 8) & (a < 247) & (b > 8) & (b < 247)
     if ok.sum() < min_points:
         return 1.0
@@ -118,6 +125,7 @@ class LKTracker(Tracker):
         self.criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(iterations), 0.01)
         self.gain = bool(gain)
         self._pyr = None
+        self._map = None       # brightness_map of the current frame, the next one's reference
         self._shape = None
         self._ids = np.zeros(0, np.int64)
         self._pts = np.zeros((0, 2), np.float32)
@@ -150,6 +158,8 @@ class LKTracker(Tracker):
         # OpenCV's Python binding cannot take prebuilt pyramids, so each call builds its own.
         gray = to_gray(image)
         prev, self._pyr = self._pyr, gray
+        if self.gain:
+            prev_map, self._map = self._map, brightness_map(gray)
         pyr = gray
         if prev is None or self._shape != gray.shape or len(self._ids) == 0:
             self._shape = gray.shape
@@ -159,7 +169,7 @@ class LKTracker(Tracker):
         p0 = self._pts.reshape(-1, 1, 2)
         guess = (self._pts + self._vel).reshape(-1, 1, 2)
         if self.gain:
-            g = exposure_gain(prev, gray, self._pts, guess.reshape(-1, 2))
+            g = exposure_gain(prev_map, self._map, self._pts, guess.reshape(-1, 2))
             # The brighter image is scaled down, so that no grey level clips at 255.
             if g > 1.0 + self.GAIN_TOLERANCE:
                 pyr = cv2.convertScaleAbs(gray, alpha=1.0 / g)

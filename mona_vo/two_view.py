@@ -140,10 +140,13 @@ def rotation_only(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr
     # H maps b -> a, so for a pure rotation it is R_a_b. The rotation itself is the least-squares
     # fit of the inliers' rays (Kabsch), not H's nearest rotation: H's extra freedoms absorb
     # part of the motion that a rotation has to explain.
-    ra, rb = bearings(pts_a[inliers], intr_a), bearings(pts_b[inliers], intr_b)
-    U, _, Vt = np.linalg.svd(ra.T @ rb)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt, inliers
+    return kabsch_rotation(bearings(pts_a[inliers], intr_a), bearings(pts_b[inliers], intr_b)), inliers
+
+
+def kabsch_rotation(rays_a: np.ndarray, rays_b: np.ndarray) -> np.ndarray:
+    """The rotation R_a_b that best maps the (N, 3) rays_b onto rays_a (least squares, Kabsch)."""
+    U, _, Vt = np.linalg.svd(rays_a.T @ rays_b)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
 def homography_parallax_px(pts_a: np.ndarray, pts_b: np.ndarray, *, threshold_px: float = 2.0
