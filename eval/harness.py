@@ -32,7 +32,7 @@ import numpy as np
 from data_tools.atomic import write_text_atomic
 from data_tools.run_outputs import sigint_deferred
 from data_tools.tum import write_tum_trajectory
-from eval.metrics import Trajectory, evaluate_rotation, evaluate_trajectory, gt_is_stationary
+from eval.metrics import RotationMetrics, Trajectory, score_trajectory
 from mona_vo.config import apply_overrides, to_dict
 from mona_vo.errors import ConfigError, MonaVoError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
@@ -121,13 +121,10 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
         row.update(frames=len(vo.timestamps), frames_with_pose=int(posed.sum()),
                    low_confidence=int(vo.low_confidence.sum()))
         est = Trajectory(vo.timestamps[posed], vo.poses[posed])
-        if gt_is_stationary(seq.gt):
-            # A tripod: no GT translation, so no Sim(3) ATE; orientation errors and how far the
-            # estimate wandered say whether the VO kept it rotation-only.
-            r = evaluate_rotation(seq.gt, est, max_diff=seq.max_diff)
-            row.update(r.to_dict())
+        m = score_trajectory(seq.gt, est, max_diff=seq.max_diff)
+        if isinstance(m, RotationMetrics):
+            row.update(m.to_dict())
         else:
-            m = evaluate_trajectory(seq.gt, est, max_diff=seq.max_diff)
             row.update({k: v for k, v in m.to_dict().items()
                         if k in ("ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path", "n_matched", "scale")})
             if m.n_matched < MIN_MATCHED_FRACTION * posed.sum():

@@ -331,3 +331,15 @@ def evaluate_rotation(gt: Trajectory, est: Trajectory, *, max_diff: float = 0.01
                            rpe_rot_deg=float(rpe.get_statistic(StatisticsType.rmse)),
                            n_matched=int(gt_m.num_poses),
                            est_translation_extent=float(np.linalg.norm(c - c[0], axis=1).max()))
+
+
+def score_trajectory(gt: Trajectory, est: Trajectory, *, max_diff: float = 0.01,
+                     associate: bool = True) -> TrajectoryMetrics | RotationMetrics:
+    """The errors that exist for this GT, the one choice every benchmark makes here: a GT whose
+    camera never translates (a tripod pan, :func:`gt_is_stationary`) has no Sim(3) ATE -- no
+    translation fixes a scale or a position -- so it gets :func:`evaluate_rotation` (orientation
+    errors, and how far the estimate wandered); any other GT :func:`evaluate_trajectory` with
+    Sim(3) alignment. Raises :class:`EvalError` as those do."""
+    if gt_is_stationary(gt):
+        return evaluate_rotation(gt, est, max_diff=max_diff, associate=associate)
+    return evaluate_trajectory(gt, est, max_diff=max_diff, associate=associate)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from data_tools.synthetic import SceneConfig, SyntheticScene
-from eval.metrics import Trajectory, evaluate_rotation, evaluate_trajectory, gt_is_stationary
+from eval.metrics import RotationMetrics, Trajectory, score_trajectory
 from mona_vo.errors import EvalError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 
@@ -53,14 +53,11 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig) -
     errors = {"ate": nan, "ate_pct": nan, "rpe_trans": nan, "rpe_rot_deg": nan, "path_m": 0.0,
               "rot_rmse_deg": nan, "est_translation_extent": nan, "status": "ok"}
     try:
-        if gt_is_stationary(gt):
-            # A tripod pan: no ATE exists; the orientation error and how far the estimate
-            # wandered tell whether the VO kept it rotation-only.
-            r = evaluate_rotation(gt, est)
-            errors.update(rpe_rot_deg=r.rpe_rot_deg, rot_rmse_deg=r.rot_rmse_deg,
-                          est_translation_extent=r.est_translation_extent)
+        m = score_trajectory(gt, est)
+        if isinstance(m, RotationMetrics):
+            errors.update(rpe_rot_deg=m.rpe_rot_deg, rot_rmse_deg=m.rot_rmse_deg,
+                          est_translation_extent=m.est_translation_extent)
         else:
-            m = evaluate_trajectory(gt, est)
             errors.update(ate=m.ate, ate_pct=m.ate_percent_of_path, rpe_trans=m.rpe_trans,
                           rpe_rot_deg=m.rpe_rot_deg, path_m=m.path_length)
     except EvalError as exc:  # one sequence that cannot be scored must not end the benchmark

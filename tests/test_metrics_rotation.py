@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from eval.metrics import Trajectory, evaluate_rotation, evaluate_trajectory, gt_is_stationary
+from eval.metrics import (RotationMetrics, Trajectory, TrajectoryMetrics, evaluate_rotation,
+                          evaluate_trajectory, gt_is_stationary, score_trajectory)
 from mona_vo.errors import EvalError
 
 
@@ -37,3 +38,22 @@ def test_rotation_error_ignores_a_global_rotation_and_measures_a_per_frame_one()
     assert 0.3 < r.rot_rmse_deg < 0.6
     assert r.est_translation_extent == pytest.approx(0.5)
     assert r.n_matched == 20
+
+
+def test_score_trajectory_chooses_rotation_errors_for_a_tripod_and_sim3_ate_otherwise():
+    gt = _pan()
+    est = gt.poses_T_world_cam.copy()
+    est[5, :3, :3] = est[5, :3, :3] @ Rotation.from_euler("x", 1.0, degrees=True).as_matrix()
+    est = Trajectory(gt.timestamps, est)
+    r = score_trajectory(gt, est)
+    assert isinstance(r, RotationMetrics)
+    assert r.rot_max_deg == pytest.approx(evaluate_rotation(gt, est).rot_max_deg)
+
+    walk = gt.poses_T_world_cam.copy()
+    walk[:, :3, 3] = np.stack([np.arange(20) * 0.1, np.sin(np.arange(20)), np.zeros(20)], axis=1)
+    walk = Trajectory(gt.timestamps, walk)
+    noisy = walk.poses_T_world_cam.copy()
+    noisy[3, :3, 3] += [0.05, 0.0, 0.0]
+    m = score_trajectory(walk, Trajectory(gt.timestamps, noisy))
+    assert isinstance(m, TrajectoryMetrics) and m.ate > 0.005
+    assert m.ate == evaluate_trajectory(walk, Trajectory(gt.timestamps, noisy)).ate
