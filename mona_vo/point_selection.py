@@ -22,9 +22,22 @@ def texture_score(gray: np.ndarray, kind: str = "min_eigen") -> np.ndarray:
     raise ValueError(f"unknown texture score '{kind}' (min_eigen, gradient)")
 
 
+TRACKABLE_SCORE = 1e-4  # min-eigen score of a trackable cell in a textured frame (grid_points)
+
+
+def adaptive_min_score(score: np.ndarray, floor: float, quality: float) -> float:
+    """The score a new point needs in this frame: :data:`TRACKABLE_SCORE`, lowered in a weakly
+    textured frame (blur, fog, a bare wall) to ``quality`` times the frame's 99th-percentile
+    score -- the relative rule of Shi-Tomasi's ``qualityLevel``, so a blurred frame still gets
+    its best corners -- but never below ``floor``, the score image noise reaches by itself
+    (a point there would track noise). The percentile is taken on every other pixel."""
+    top = float(np.percentile(score[::2, ::2], 99)) if score.size else 0.0
+    return max(float(floor), min(TRACKABLE_SCORE, float(quality) * top))
+
+
 def grid_points(score: np.ndarray, cols: int, rows: int, *, border: int = 8,
                 exclude: np.ndarray | None = None, occupied: np.ndarray | None = None,
-                min_score: float = 1e-4) -> np.ndarray:
+                min_score: float = TRACKABLE_SCORE) -> np.ndarray:
     """The highest-scoring pixel of every cell of a cols x rows grid.
 
     score:    (H, W) float32 from :func:`texture_score`.

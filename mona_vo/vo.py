@@ -38,7 +38,7 @@ from ba.sliding_window_ba import BAConfig, BAProblem, sliding_window_ba
 from mona_vo.config import check_fields, setting
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose, pixels_in_mask
 from mona_vo.errors import ConfigError
-from mona_vo.point_selection import grid_points, texture_score
+from mona_vo.point_selection import adaptive_min_score, grid_points, texture_score
 from mona_vo.tracking import LKTracker, Tracker, to_gray
 from mona_vo.two_view import (homography_parallax_px, relative_pose, rotation_only,
                               rotation_parallax_deg, triangulate)
@@ -61,6 +61,11 @@ class VOConfig:
     grid_size: int = setting(16, ge=2)      # k: new points on a k x k grid, one per cell
     point_score: str = setting("min_eigen", choices=("min_eigen", "gradient"))
                                             # min_eigen (Shi-Tomasi) | gradient (LEAP-VO)
+    point_quality: float = setting(0.1, ge=0, le=1)  # in a weakly textured frame a new point
+                                            # needs this share of the frame's 99th-percentile
+                                            # texture score (Shi-Tomasi's relative rule) ...
+    point_min_score: float = setting(3e-5, ge=0)  # ... and at least this min-eigen score (what
+                                            # grey-level noise of sigma 2 scores by itself)
     mask_dilate_px: int = setting(5, ge=0)  # no new points this close to a moving-object mask, px
     init_min_parallax_deg: float = setting(0.5, ge=0, le=45)  # median ray angle needed to
                                             # initialise the map, degrees
@@ -319,7 +324,9 @@ class VisualOdometry:
             k = 2 * self.cfg.mask_dilate_px + 1
             exclude = cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
         k = self.cfg.grid_size
-        pts = grid_points(score, k, k, exclude=exclude, occupied=self._static(obs).uv)
+        min_score = adaptive_min_score(score, self.cfg.point_min_score, self.cfg.point_quality)
+        pts = grid_points(score, k, k, exclude=exclude, occupied=self._static(obs).uv,
+                          min_score=min_score)
         new_ids = self.tracker.add_points(pts) if len(pts) else np.zeros(0, np.int64)
         return np.asarray(new_ids, np.int64), pts.astype(np.float64)
 

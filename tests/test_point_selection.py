@@ -1,0 +1,37 @@
+"""New-point selection: the score a new point needs adapts to weakly textured frames."""
+import cv2
+import numpy as np
+
+from mona_vo.point_selection import TRACKABLE_SCORE, adaptive_min_score, grid_points, texture_score
+
+
+def _texture(contrast=120.0, blur=0.0, shape=(272, 640), seed=0):
+    """Smooth random texture (8-px blobs) of the given grey-level contrast, optionally blurred."""
+    rng = np.random.default_rng(seed)
+    img = cv2.resize(rng.uniform(0, 1, (shape[0] // 8, shape[1] // 8)).astype(np.float32),
+                     shape[::-1], interpolation=cv2.INTER_CUBIC) * contrast + 128 - contrast / 2
+    if blur:
+        img = cv2.GaussianBlur(img, (0, 0), blur)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_a_textured_frame_keeps_the_trackable_score():
+    s = texture_score(_texture())
+    assert adaptive_min_score(s, 3e-5, 0.1) == TRACKABLE_SCORE
+
+
+def test_a_blurred_frame_gets_its_best_corners_instead_of_almost_none():
+    s = texture_score(_texture(contrast=40.0, blur=4.0))
+    need = adaptive_min_score(s, 3e-5, 0.1)
+    assert 3e-5 <= need < TRACKABLE_SCORE
+    fixed = len(grid_points(s, 16, 16))
+    adaptive = len(grid_points(s, 16, 16, min_score=need))
+    assert fixed < 0.1 * 256 and adaptive > fixed + 64
+
+
+def test_noise_alone_never_passes_the_floor():
+    flat = np.clip(128 + np.random.default_rng(1).normal(0, 1.0, (272, 640)), 0, 255).astype(np.uint8)
+    s = texture_score(flat)
+    need = adaptive_min_score(s, 3e-5, 0.1)
+    assert need == 3e-5
+    assert len(grid_points(s, 16, 16, min_score=need)) < 0.1 * 256
