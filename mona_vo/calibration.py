@@ -36,7 +36,7 @@ from mona_vo.conventions import Intrinsics, invert_pose, make_pose, rotation_ang
 from mona_vo.config import setting
 from mona_vo.errors import ConfigError
 from mona_vo.tracking import LKTracker, to_gray
-from mona_vo.two_view import bearings, kabsch_rotation, relative_pose, triangulate
+from mona_vo.two_view import bearings, kabsch_rotation, pixel_homography, relative_pose, triangulate
 
 log = logging.getLogger(__name__)
 
@@ -221,10 +221,9 @@ def rotation_focal(tracks, keys: list[int], width: int, guess: Intrinsics,
             _, a, b = np.intersect1d(ia, ib, return_indices=True)
             if len(a) < 20:
                 continue
-            H, inl = cv2.findHomography(ua[a], ub[b], cv2.USAC_MAGSAC, 2.0)
+            H, inl = pixel_homography(ua[a], ub[b], 2.0)
             if H is None:
                 continue
-            inl = inl.ravel() > 0
             pairs.append((ua[a][inl], ub[b][inl]))
     if not pairs:
         return {}

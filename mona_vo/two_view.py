@@ -120,6 +120,17 @@ def rotation_parallax_deg(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsi
     return np.degrees(np.arccos(cos))
 
 
+def pixel_homography(pts_a: np.ndarray, pts_b: np.ndarray, threshold_px: float = 2.0):
+    """(H_b_a, inliers) of a robust (USAC MAGSAC) homography mapping the (N, 2) pixels pts_a onto
+    pts_b, inliers an (N,) bool; (None, None) when it cannot be fitted. The one homography fit of
+    the pixel-only tests here (rotation, leftover parallax) and of the calibration's rotation
+    model."""
+    H, mask = cv2.findHomography(pts_a, pts_b, cv2.USAC_MAGSAC, threshold_px)
+    if H is None or H.shape != (3, 3):
+        return None, None
+    return H, mask.ravel() > 0
+
+
 def rotation_only(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr_b: Intrinsics,
                   *, threshold_px: float = 2.0) -> tuple[np.ndarray, np.ndarray] | None:
     """Rotation R_a_b of a camera turning without translation (or seeing only far points), from
@@ -131,11 +142,8 @@ def rotation_only(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr
     f = 0.5 * (intr_a.fx + intr_b.fx)
     # Fitted in pixel units of a virtual camera of focal f (centred): USAC's thresholds and
     # scoring misbehave in normalised units (measured: 11 of 190 inliers on an exact pan).
-    H, mask = cv2.findHomography(nb * f, na * f, cv2.USAC_MAGSAC, threshold_px)
-    if H is None:
-        return None
-    inliers = mask.ravel() > 0
-    if inliers.sum() < 3:
+    H, inliers = pixel_homography(nb * f, na * f, threshold_px)
+    if H is None or inliers.sum() < 3:
         return None
     # H maps b -> a, so for a pure rotation it is R_a_b. The rotation itself is the least-squares
     # fit of the inliers' rays (Kabsch), not H's nearest rotation: H's extra freedoms absorb
@@ -162,8 +170,8 @@ def homography_parallax_px(pts_a: np.ndarray, pts_b: np.ndarray, *, threshold_px
     pb = np.ascontiguousarray(pts_b, np.float64).reshape(-1, 2)
     if len(pa) < 8:
         return float("nan"), len(pa)
-    H, _ = cv2.findHomography(pa, pb, cv2.USAC_MAGSAC, threshold_px)
-    if H is None or H.shape != (3, 3):
+    H, _ = pixel_homography(pa, pb, threshold_px)
+    if H is None:
         return float("nan"), len(pa)
     q = np.concatenate([pa, np.ones((len(pa), 1))], axis=1) @ H.T
     with np.errstate(divide="ignore", invalid="ignore"):
