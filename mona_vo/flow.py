@@ -147,6 +147,52 @@ def chain_flows(flows, *, max_change_px: float = np.inf,
     return out, valid
 
 
+def forward_warp_values(values: np.ndarray, flow: np.ndarray, fill: float = 0.0) -> np.ndarray:
+    """(h, w) float32 ``values`` of the previous frame moved into this frame along ``flow``
+    ((h, w, 2) float32, previous -> this frame, pixels of the map): every pixel goes where its
+    own vector takes it (rounded), the max kept where several land.
+
+    Pixels nobody lands on are mostly background a mover uncovered: hidden in the previous
+    frame, nothing can be carried there, so they get ``min(fill, values read at x - u(x))``
+    (``fill``: no knowledge; the read keeps lower values, e.g. static evidence, where the flow
+    only stretched). Reading at ``x - u(x)`` alone (the forward flow standing in for its
+    inverse) reads the mover itself where the background moves behind it (a camera panning
+    with a runner): the uncovered pixels' vectors point back onto it, and its evidence would
+    trail behind it by the relative motion every frame. ``fill`` everywhere without a flow.
+    """
+    V = np.asarray(values, np.float32)
+    if flow is None or flow.shape[:2] != V.shape:
+        return np.full_like(V, fill)
+    h, w = V.shape
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    x = np.rint(gx + flow[..., 0]).astype(np.int64).ravel()
+    y = np.rint(gy + flow[..., 1]).astype(np.int64).ravel()
+    ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    flat = np.full(h * w, -np.inf, np.float32)
+    np.maximum.at(flat, y[ok] * w + x[ok], V.ravel()[ok])
+    splat = flat.reshape(h, w)
+    hole = ~np.isfinite(splat)
+    if not hole.any():
+        return splat
+    back = cv2.remap(V, gx - flow[..., 0], gy - flow[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=float(fill))
+    filled = np.minimum(back, np.float32(fill))
+    return np.where(hole, filled, splat).astype(np.float32)
+
+
+def flow_edges(flow: np.ndarray, radius: int, min_change_px: float) -> np.ndarray:
+    """(h, w) bool: pixels within ``radius`` of a flow discontinuity, where either component
+    of the (h, w, 2) ``flow`` varies by more than ``min_change_px`` over the (2 radius + 1)^2
+    window. There the flow mixes two motions (a mover's and its background's: a dense flow
+    smooths across the boundary), so it cannot say where such a pixel went."""
+    k = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    out = np.zeros(flow.shape[:2], bool)
+    for c in range(2):
+        f = np.ascontiguousarray(flow[..., c], np.float32)
+        out |= (cv2.dilate(f, k) - cv2.erode(f, k)) > min_change_px
+    return out
+
+
 def forward_warp_mask(mask: np.ndarray, flow: np.ndarray) -> np.ndarray:
     """(h, w) bool: the True pixels of an (h, w) bool ``mask`` moved along their own vectors of
     the (h, w, 2) float32 ``flow`` (same size, pixels; rounded to the nearest pixel), the pixels

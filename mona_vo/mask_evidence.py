@@ -7,8 +7,8 @@ that the pixel is on a moving object) and changes it by small pure steps, one pe
 
 ``carry``      the previous map moved into this frame along the optical flow between them
                (forward splat: every pixel goes where its own flow vector takes it, the max kept
-               where several land; pixels nobody lands on read the map at ``x - u(x)``), so the
-               evidence of a mover travels with it.
+               where several land; background a mover uncovers starts with no evidence), so the
+               evidence of a mover travels with it and does not trail behind it.
 ``observe``    this frame's log-likelihood ratio per pixel. Dense motion: ``z = r / theta`` (the
                residual of the flow against the camera-induced motion over the frame's
                threshold) gives ``2 log z`` -- the log-odds of the Cauchy dynamic probability
@@ -42,6 +42,7 @@ import numpy as np
 
 from mona_vo.config import check_fields, setting
 from mona_vo.errors import ConfigError
+from mona_vo.flow import flow_edges, forward_warp_values
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,10 @@ class EvidenceConfig:
                                   # image are dropped
     join_frac: float = setting(0.03, ge=0)  # parts of one object closer than this (fraction of
                                   # the diagonal) join before regions are labelled
+    edge_change_px: float = setting(1.0, gt=0)  # carried evidence: a pixel within edge_radius
+                                  # of a flow discontinuity larger than this (map pixels) carries
+                                  # no positive evidence (its flow mixes two motions)
+    edge_radius: int = setting(2, ge=0)  # see edge_change_px (map pixels; 0: only the pixel)
     bound_px: int = setting(5, ge=-1)  # segmentation stays within this many analysis pixels of
                                   # the regions' convex hulls (0: the hulls; -1: no bound)
 
@@ -76,24 +81,25 @@ class EvidenceConfig:
                               "clamp_hi")
 
 
-def carry(logodds: np.ndarray, flow: np.ndarray | None, fill: float = 0.0) -> np.ndarray:
+def carry(logodds: np.ndarray, flow: np.ndarray | None, fill: float = 0.0,
+          config: EvidenceConfig | None = None) -> np.ndarray:
     """(h, w) float32 log-odds of the previous frame moved into this frame along ``flow``
-    ((h, w, 2) float32, previous -> this frame, pixels of the map): forward splat (max where
-    several land), holes read at ``x - u(x)``; ``fill`` everywhere without a flow."""
+    ((h, w, 2) float32, previous -> this frame, pixels of the map): forward splat, max where
+    several land; background a mover uncovers gets at most ``fill``
+    (:func:`mona_vo.flow.forward_warp_values`); ``fill`` everywhere without a flow.
+
+    Pixels at a flow discontinuity (``config.edge_change_px``, ``edge_radius``) carry at most
+    ``fill``: a dense flow smooths across a mover's outline, so its rim pixels get vectors
+    between the mover's and the background's and would land beside it. Carried at the
+    saturated log-odds of the mover, they drew a trail behind it that took four frames to fade
+    (DAVIS libby, a camera panning with a running dog: the trail held a fifth of the image
+    width). The rim is re-decided by the frame's own observation instead."""
     L = np.asarray(logodds, np.float32)
-    if flow is None or flow.shape[:2] != L.shape:
-        return np.full_like(L, fill)
-    h, w = L.shape
-    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    back = cv2.remap(L, gx - flow[..., 0], gy - flow[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=float(fill))
-    x = np.rint(gx + flow[..., 0]).astype(np.int64).ravel()
-    y = np.rint(gy + flow[..., 1]).astype(np.int64).ravel()
-    ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    flat = np.full(h * w, -np.inf, np.float32)
-    np.maximum.at(flat, y[ok] * w + x[ok], L.ravel()[ok])
-    splat = flat.reshape(h, w)
-    return np.where(np.isfinite(splat), splat, back).astype(np.float32)
+    if flow is not None and flow.shape[:2] == L.shape:
+        cfg = config or EvidenceConfig()
+        rim = flow_edges(flow, cfg.edge_radius, cfg.edge_change_px)
+        L = np.where(rim, np.minimum(L, np.float32(fill)), L)
+    return forward_warp_values(L, flow, fill)
 
 
 def observe(motion_map: np.ndarray | None, theta: float, shape: tuple[int, int],

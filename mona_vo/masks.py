@@ -400,15 +400,10 @@ class MonaMasker:
         return residual_map(motion, cum, valid if where is None else where) / (gap * scale)
 
     def _carry_forward(self, prev_map: np.ndarray) -> np.ndarray:
-        """The previous frame's motion map moved into this frame along the flow between them
-        (read at ``x - u(x)``, the flow standing in for its inverse); zeros without a flow."""
-        flow = self._prev_flow
-        if flow is None or flow.shape[:2] != prev_map.shape:
-            return np.zeros_like(prev_map)
-        h, w = prev_map.shape
-        gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-        return cv2.remap(prev_map, gx - flow[..., 0], gy - flow[..., 1], cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        """The previous frame's motion map moved into this frame along the flow between them,
+        as the evidence is (:func:`mona_vo.mask_evidence.carry`: forward splat, nothing carried
+        from a flow discontinuity or onto background a mover uncovered); zeros without a flow."""
+        return mask_evidence.carry(prev_map, self._prev_flow, 0.0, self.config.evidence)
 
     def _carry_prior(self) -> np.ndarray:
         """The previous frame's mask at the analysis resolution, carried into this frame along
@@ -549,7 +544,7 @@ class MonaMasker:
                                     dyn.residual[dyn_sel], self._size[0], ev)
         if self._logodds is None or self._logodds.shape != mmap.shape:
             return mask_evidence.update(obs, obs, dataclasses.replace(ev, decay=0.999))
-        carried = mask_evidence.carry(self._logodds, self._prev_flow, 0.0)
+        carried = mask_evidence.carry(self._logodds, self._prev_flow, 0.0, ev)
         return mask_evidence.update(carried, obs, ev)
 
     def _with_evidence(self, kept: Boxes, found: np.ndarray, allowed: np.ndarray | None,

@@ -5,8 +5,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mona_vo.flow import (FLOWS, DISFlow, DISFlowConfig, Flow, chain_flows, forward_warp_mask,
-                          mean_flow_magnitude, resize_flow, vector_lengths)
+from mona_vo.flow import (FLOWS, DISFlow, DISFlowConfig, Flow, chain_flows, flow_edges,
+                          forward_warp_mask, forward_warp_values, mean_flow_magnitude,
+                          resize_flow, vector_lengths)
 
 # Measured on alley_1 frame_0002 -> frame_0003 (clean) with the default DIS settings (medium
 # preset at half resolution): EPE 0.47 px over the non-occluded pixels (GT mean motion 3.0 px).
@@ -121,3 +122,40 @@ def test_forward_warp_mask_moves_pixels_along_their_own_flow():
     np.testing.assert_array_equal(out, expected)
     flow[10:20, 10:20] = (55.0, 0.0)           # leaves the image: dropped
     assert not forward_warp_mask(mask, flow).any()
+
+
+def _still_mover_panning_background():
+    """A 10 x 10 block standing still in the image while the background slides 4 px left
+    behind it (a camera panning with a runner): values 5 on the block, -1 elsewhere."""
+    values = np.full((30, 60), -1.0, np.float32)
+    values[10:20, 20:30] = 5.0
+    flow = np.zeros((30, 60, 2), np.float32)
+    flow[..., 0] = -4.0
+    flow[10:20, 20:30] = 0.0
+    return values, flow
+
+
+def test_forward_warp_values_carries_nothing_onto_background_a_mover_uncovers():
+    values, flow = _still_mover_panning_background()
+    out = forward_warp_values(values, flow, fill=0.0)
+    np.testing.assert_array_equal(out[10:20, 20:30], 5.0)      # the block stays where it is
+    # The strip left of the block was hidden behind it: nobody lands there. Read at x - u(x)
+    # (the forward flow standing in for its inverse) it would show the block again, a trail of
+    # 4 px per frame; here it holds no more than the fill.
+    strip = out[10:20, 16:20]
+    assert strip.max() <= 0.0
+    back = cv2.remap(values, *np.meshgrid(np.arange(60, dtype=np.float32) + 4.0,
+                                          np.arange(30, dtype=np.float32)), cv2.INTER_LINEAR)
+    assert back[10:20, 16:20].min() == 5.0                    # what the old read gave
+    np.testing.assert_array_equal(out[:5, :50], -1.0)         # background moved, max kept
+    assert (forward_warp_values(values, None, 2.0) == 2.0).all()   # no flow: the fill
+
+
+def test_flow_edges_mark_the_rim_of_a_motion_boundary_only():
+    _, flow = _still_mover_panning_background()
+    rim = flow_edges(flow, radius=2, min_change_px=1.0)
+    assert rim[15, 18] and rim[15, 21] and rim[15, 28] and rim[15, 31]   # within 2 px of it
+    assert not rim[15, 25] and not rim[15, 10] and not rim[25, 40]       # inside and away
+    smooth = np.zeros((30, 60, 2), np.float32)
+    smooth[..., 0] = np.linspace(-3, 3, 60, dtype=np.float32)[None]      # a zoom: smooth flow
+    assert not flow_edges(smooth, radius=2, min_change_px=1.0).any()

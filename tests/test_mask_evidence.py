@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -85,6 +86,39 @@ def test_evidence_travels_with_the_mover_along_the_flow():
     cols = np.nonzero(carried[15] > CFG.seed)[0]
     assert cols.min() >= c0 + 18 and cols.max() <= c0 + 18 + 10
     assert ev.carry(L, None, -1.0).max() == -1.0           # no flow: nothing is carried
+
+
+def _follow_a_still_mover(config, frames=8):
+    """Regions after ``frames`` frames of a 14-px block standing still in the image while the
+    background slides 4 px left behind it, the flow blurred across its outline as a dense flow
+    is (the rim's vectors lie between the block's and the background's)."""
+    flow = np.zeros((H, W, 2), np.float32)
+    flow[..., 0] = -4.0
+    flow[10:20, 28:42, 0] = 0.0
+    flow[..., 0] = cv2.blur(flow[..., 0], (5, 1))
+    block = (10, 20, 28, 42)
+
+    def step(L, mmap):
+        obs = ev.observe(mmap, THETA, (H, W), NO_POINTS, NO_RES, W, config)
+        if L is None:
+            return ev.update(obs, obs, dataclasses.replace(config, decay=0.999))
+        return ev.update(ev.carry(L, flow, 0.0, config), obs, config)
+
+    L = step(None, _map(block))
+    for _ in range(frames):
+        L = step(L, _map(block))
+    return ev.regions(L, config)
+
+
+def test_evidence_of_a_mover_the_camera_follows_does_not_trail_behind_it():
+    found = _follow_a_still_mover(CFG)
+    cols = np.nonzero(found[15])[0]
+    assert cols.min() >= 26 and cols.max() <= 43        # the block, 28-41, and its rim
+    assert found[15, 31:39].all()
+    # Carried from the rim too (no flow edge is ever large enough), the evidence trails the
+    # block by the rim's motion every frame.
+    trail = _follow_a_still_mover(dataclasses.replace(CFG, edge_change_px=1e9))
+    assert np.nonzero(trail[15])[0].min() < 24
 
 
 def test_strong_dynamic_points_add_evidence_weak_ones_do_not():
