@@ -200,6 +200,12 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
 
     pending: deque = deque()   # frames waiting for their MONA mask
 
+    def camera_without_calib(w: int, h: int) -> Intrinsics:
+        # One camera for the VO and the masks: the estimate when there is one, else the guess
+        # (MONA's epipolar test on a wrong focal length turns near parallax into motion).
+        return calibration.intrinsics_for(w, h) if calibration is not None \
+            else config.guessed_intrinsics(w, h)
+
     def feed(frame, mask, mona=None, vo_mask=None):
         # vo_mask: what the VO sees; MONA's masks reach it only when reliable
         # (MaskFrame.reliable: not too large, not flickering), else the VO relies on its own
@@ -209,8 +215,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             vo_mask = mask
         intr = _intrinsics_for(intrinsics, frame, *size)
         if vo is None:
-            first_intr = intr or (calibration.intrinsics_for(*size) if calibration is not None
-                                  else config.guessed_intrinsics(*size))
+            first_intr = intr or camera_without_calib(*size)
             vo = VisualOdometry(config.vo, size[0], size[1], first_intr,
                                 tracker=config.build_tracker())
         if on_frame is not None:
@@ -241,9 +246,9 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             if masker is None:
                 from mona_vo.masks import MonaMasker
 
-                # MONA's camera model uses the intrinsics when known, else the VO's guess.
+                # MONA's camera model uses the intrinsics when known, else the VO's camera.
                 masker = MonaMasker(config.masks, _intrinsics_for(intrinsics, frame, w, h)
-                                    or config.guessed_intrinsics(w, h), **config.masker_backends())
+                                    or camera_without_calib(w, h), **config.masker_backends())
             pending.append(frame)
             drain(masker.push(frame.index, frame.image))
         else:

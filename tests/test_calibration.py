@@ -100,3 +100,37 @@ def test_pure_forward_translation_cannot_show_the_focal_length():
 def test_config_is_checked():
     with pytest.raises(ConfigError, match="hfov_min_deg"):
         FocalConfig(hfov_min_deg=100.0, hfov_max_deg=50.0).validate()
+
+
+def test_the_masks_use_the_same_estimated_camera_as_the_vo(monkeypatch):
+    """Without intrinsics the pipeline estimates the focal length; MONA's epipolar test must use
+    that estimate too, not the field-of-view guess (on a wrong focal length near parallax reads
+    as motion)."""
+    import mona_vo.masks as masks_module
+    from data_tools.synthetic import SceneConfig, SyntheticScene
+    from mona_vo.pipeline import PipelineConfig, estimate_trajectory
+
+    seen = []
+    real_init = masks_module.MonaMasker.__init__
+
+    def spy(self, config=None, intrinsics=None, **kwargs):
+        seen.append(intrinsics)
+        real_init(self, config, intrinsics, **kwargs)
+
+    monkeypatch.setattr(masks_module.MonaMasker, "__init__", spy)
+    scene = SyntheticScene(SceneConfig(width=320, height=136, n_frames=24, preset="pan", seed=0,
+                                       hfov_deg=80.0))
+
+    class Frame:
+        def __init__(self, r):
+            self.index, self.timestamp, self.name, self.image = r.index, float(r.index), str(r.index), r.image
+
+    frames = [Frame(r) for r in scene]
+    config = PipelineConfig()
+    result = estimate_trajectory(frames, masks="mona", config=config)
+    guess = config.guessed_intrinsics(320, 136)
+    assert result.calibration is not None and result.calibration.used
+    assert len(seen) == 1
+    assert seen[0].fx == pytest.approx(result.intrinsics.fx)
+    assert abs(seen[0].fx - guess.fx) > 0.1 * guess.fx            # the estimate, not the guess
+    assert abs(seen[0].fx - scene.intrinsics.fx) < 0.05 * scene.intrinsics.fx
