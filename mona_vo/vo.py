@@ -45,7 +45,7 @@ from mona_vo.two_view import (homography_parallax_px, relative_pose, rotation_on
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dynamic_test,
                               estimate_pose, interpolate_pose, keyframe_needed, predict_pose,
-                              rotation_free_parallax_px, triangulate_against)
+                              rotation_free_parallax_px, triangulate_against, typical_speed)
 
 # Per-frame status strings (FrameStatus values), from most to least trustworthy.
 KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED = (
@@ -89,6 +89,9 @@ class VOConfig:
     gauge: str = setting("fixed", choices=("fixed", "distance"))  # fixed: hold fixed_keyframes;
                                             # distance: hold the oldest keyframe and only its
                                             # distance to the next one
+    reinit_speed_keyframes: int = setting(20, ge=1)  # a map started after tracking was lost
+                                            # continues the median speed of the last map's last
+                                            # this many keyframe steps
     pnp_threshold_px: float = setting(2.0, gt=0)  # RANSAC inlier threshold for per-frame poses, px
     pnp_min_inliers: int = setting(12, ge=4)  # fewer PnP inliers means tracking is lost
     pnp_guided_px: float = setting(6.0, ge=0)  # points this close to the constant-velocity
@@ -208,7 +211,7 @@ class VisualOdometry:
         self._attempt: _Attempt | None = None
         self._probe: _Probe | None = None
         self._focal_fixed: float | None = None
-        self._speed_hint: float | None = None       # metres/frame before a re-initialisation
+        self._speed_hint: float | None = None       # map units/frame before a re-initialisation
         self._rmse = float("nan")
         self._pose_settings = PoseSettings(config.pnp_threshold_px, config.pnp_min_inliers,
                                            config.pnp_guided_px, config.pnp_guided_min_share,
@@ -338,9 +341,11 @@ class VisualOdometry:
         if T is None:
             # Lost: keep a pose (extrapolated), remember the speed, start a new map here.
             self.drops["tracking_lost"] += 1
-            if t >= 2:
-                step = float(np.linalg.norm((invert_pose(m.pose_of(t - 2)) @ m.pose_of(t - 1))[:3, 3]))
-                self._speed_hint = step if step > 0 else self._speed_hint
+            kf = m.keyframes
+            rows = np.flatnonzero(kf.segment[:kf.n] == m.segment)
+            speed = typical_speed(kf.frame[rows], kf.T_world_cam[rows, :3, 3],
+                                  self.cfg.reinit_speed_keyframes)
+            self._speed_hint = speed or self._speed_hint
             self._write_absolute(t, FrameStatus.EXTRAPOLATED, n_inl, T_guess)
             m.state = VOState.INIT
             self._start_attempt(t, gray, obs, intr, mask, T_guess)

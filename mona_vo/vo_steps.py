@@ -156,6 +156,23 @@ def triangulate_against(views, ids: np.ndarray, uv: np.ndarray, intr: Intrinsics
     return np.concatenate(out_ids), np.concatenate(out_X)
 
 
+def typical_speed(frames: np.ndarray, positions: np.ndarray, recent: int) -> float | None:
+    """The map's usual translation per frame: the median, over the last ``recent`` steps
+    between consecutive keyframes ((K,) frame indices, (K, 3) camera centres, in time order),
+    of the step's length over its frame gap; None without a step. A median over many
+    keyframes, because tracking is lost after a few bad frames: on Bonn crowd the last step
+    before a loss was 50 times shorter than the usual one, and a new map started at that
+    speed kept its scale for the rest of the clip."""
+    f = np.asarray(frames, np.float64)
+    if len(f) < 2:
+        return None
+    steps = np.linalg.norm(np.diff(np.asarray(positions, np.float64), axis=0), axis=1)
+    per_frame = steps / np.maximum(np.diff(f), 1.0)
+    per_frame = per_frame[-recent:]
+    per_frame = per_frame[per_frame > 0]
+    return float(np.median(per_frame)) if len(per_frame) else None
+
+
 def interpolate_pose(Ta: np.ndarray, Tb: np.ndarray, a: float) -> np.ndarray:
     """Pose a of the way from Ta to Tb (rotation by slerp, centre linearly)."""
     R = Slerp([0, 1], Rotation.from_matrix([Ta[:3, :3], Tb[:3, :3]]))(a).as_matrix()

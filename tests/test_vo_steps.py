@@ -1,5 +1,6 @@
 """mona_vo.vo_steps and mona_vo.geometry: each VO step alone, on synthetic tracks (milliseconds)."""
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
@@ -138,3 +139,16 @@ def test_parallax_evidence_keeps_the_strongest_ratio():
     d = ev.as_dict(3.0, map_built=False)
     assert d["conclusion"] == "translation" and not d["map_built"] and d["noise_floor_px"] == 1.5
     assert ParallaxEvidence().updated(0.5, 1.0, 5).as_dict(3.0, False)["conclusion"] == "rotation-only"
+
+
+def test_typical_speed_is_the_median_step_per_frame_of_the_last_keyframes():
+    from mona_vo.vo_steps import typical_speed
+
+    frames = np.array([0, 3, 6, 8, 11, 12, 13])
+    # 0.1 per frame, then the last two steps collapse (the few bad frames before a loss)
+    x = np.array([0.0, 0.3, 0.6, 0.8, 1.1, 1.1001, 1.1002])
+    positions = np.stack([x, np.zeros_like(x), np.zeros_like(x)], axis=1)
+    assert typical_speed(frames, positions, recent=20) == pytest.approx(0.1)
+    # Only the last `recent` steps count: the last two alone are the collapse.
+    assert typical_speed(frames, positions, recent=2) == pytest.approx(1e-4)
+    assert typical_speed(frames[:1], positions[:1], recent=20) is None
