@@ -600,6 +600,11 @@ class VisualOdometry:
             bad = out_lm[(counts >= 2) | (worst > 3 * self.cfg.ba.outlier_px)]
             self.drops["landmarks_rejected_by_ba"] += lm.flag(bad, LandmarkFlag.REJECTED)
             self.tracker.remove(bad)
+        if len(res.degenerate_landmark_ids):
+            # At or behind a camera: a triangulation the window's poses no longer support.
+            bad = np.asarray(res.degenerate_landmark_ids, np.int64)
+            self.drops["landmarks_rejected_by_ba"] += lm.flag(bad, LandmarkFlag.REJECTED)
+            self.tracker.remove(bad)
         if len(res.masked_landmark_ids):
             lm.flag(res.masked_landmark_ids, LandmarkFlag.MASKED)
         if extra:
