@@ -234,3 +234,18 @@ def test_a_landmark_behind_a_camera_is_left_out():
     problem.landmarks[j] = T[:3, 3] - 2.0 * T[:3, 2]
     res = sliding_window_ba(problem, BAConfig())
     assert list(res.degenerate_landmark_ids) == [j]
+
+
+def test_second_solve_uses_the_final_kernel_from_the_first_solves_result():
+    """Huber first (convex: safe from the PnP/triangulation guess), then the final kernel from
+    its solution. With equal kernels and no gross outlier there is no second solve."""
+    poses, pts, kf, lm, uv, rng = _scene(seed=2)
+    init, lms = _perturb(poses, pts, rng, {0, 1})
+    problem = BAProblem(init, {0, 1}, {k: INTR for k in poses}, lms, kf, lm, uv)
+    one = sliding_window_ba(problem, BAConfig(robust_kernel="huber", final_kernel="huber"))
+    two = sliding_window_ba(problem, BAConfig(robust_kernel="huber", final_kernel="cauchy"))
+    assert two.iterations > one.iterations          # the Cauchy stage ran
+    assert not np.allclose(two.poses[5], one.poses[5], atol=1e-9)
+    for res in (one, two):
+        t_err, r_err = _errors(res.poses, poses)
+        assert t_err < 0.05 and r_err < 0.3
