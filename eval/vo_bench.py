@@ -42,10 +42,14 @@ def render_sequence(preset: str, seed: int, n_frames: int, width: int, height: i
     return scene, frames, masks
 
 
-def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig) -> dict:
+def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
+                calib: str = "given") -> dict:
+    """One run. ``calib``: ``given`` passes the scene's true intrinsics; ``estimate`` passes
+    none, as `mona-vo run` without --calib (the focal length is estimated, or guessed)."""
     masks = {"none": None, "gt": list(gt_masks), "mona": "mona"}[variant]
     t0 = time.perf_counter()
-    result = estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=masks, config=config)
+    result = estimate_trajectory(frames, intrinsics=scene.intrinsics if calib == "given" else None,
+                                 masks=masks, config=config)
     wall = time.perf_counter() - t0
     gt = Trajectory(np.arange(len(frames), dtype=float), scene.poses())
     est = Trajectory(result.vo.timestamps, result.vo.poses)
@@ -65,8 +69,10 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig) -
     n = len(frames)
     vo_seconds = sum(v for k, v in result.timings.items() if k.startswith("vo."))
     mask_seconds = sum(v for k, v in result.timings.items() if k.startswith("masks."))
+    true_fx = scene.intrinsics.fx
     return {
-        "variant": variant, **errors,
+        "variant": variant, **errors, "calib": calib,
+        "focal_error_pct": 100.0 * (result.intrinsics.fx - true_fx) / true_fx,
         "frames": n, "frames_with_pose": int(np.isfinite(result.vo.poses).all(axis=(1, 2)).sum()),
         "low_confidence": int(result.vo.low_confidence.sum()),
         "keyframes": int(result.vo.is_keyframe.sum()),
@@ -79,9 +85,11 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig) -
 
 
 def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
-              config: PipelineConfig | None = None, on_row=None, repeats: int = 1) -> list[dict]:
+              config: PipelineConfig | None = None, on_row=None, repeats: int = 1,
+              calib: str = "given") -> list[dict]:
     """One row per preset x seed x variant x repeat. ``repeats`` > 1 runs each sequence again to
-    measure the run-to-run spread of one input (0 when the pipeline is deterministic)."""
+    measure the run-to-run spread of one input (0 when the pipeline is deterministic);
+    ``calib`` as in :func:`run_variant`."""
     config = config or PipelineConfig()
     rows = []
     for preset in presets:
@@ -91,7 +99,7 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
             for variant in variants:
                 for repeat in range(repeats):
                     row = {"preset": preset, "seed": seed, "repeat": repeat, "coverage": coverage,
-                           **run_variant(scene, frames, masks, variant, config)}
+                           **run_variant(scene, frames, masks, variant, config, calib)}
                     rows.append(row)
                     if on_row is not None:
                         on_row(row)
@@ -153,6 +161,7 @@ def format_row(r: dict) -> str:
             f"ATE {r['ate']:.4f} m {r['ate_pct']:7.3f}% of {r['path_m']:5.2f} m  "
             f"RPE {r['rpe_trans']:.4f} m {r['rpe_rot_deg']:.3f} deg  VO {r['vo_fps']:5.1f} fps  "
             f"masks {r['mask_ms_per_frame']:5.1f} ms/frame  low-conf {r['low_confidence']}"
+            + (f"  focal {r['focal_error_pct']:+.1f}%" if r.get("calib") == "estimate" else "")
             + (f"  rot {r['rot_rmse_deg']:.3f} deg, est. translation {r['est_translation_extent']:.3g}"
                if np.isfinite(r["rot_rmse_deg"]) else "")
             + ("" if r["status"] == "ok" else f"  {r['status']}"))
@@ -205,6 +214,9 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="1024x436")
     ap.add_argument("--set", action="append", default=[], help="config override key=value")
     ap.add_argument("--out", metavar="FILE", help="also write the rows and the summary as JSON here")
+    ap.add_argument("--calib", choices=("given", "estimate"), default="given",
+                    help="given: the scenes' true intrinsics; estimate: none, as `mona-vo run` "
+                         "without --calib (default given)")
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of each sequence, to measure the run-to-run spread (default 1)")
     args = ap.parse_args(argv)
@@ -214,7 +226,8 @@ def main(argv=None) -> int:
     cfg = load_config(PipelineConfig, None, parse_set_options(args.set))
     rows = benchmark(args.presets.split(","), parse_seeds(args.seeds), args.variants.split(","),
                      n_frames=args.frames, width=w, height=h, config=cfg,
-                     on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats))
+                     on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats),
+                     calib=args.calib)
     print()
     summary = summarize(rows)
     print(format_summary(summary))

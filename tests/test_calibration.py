@@ -134,3 +134,15 @@ def test_the_masks_use_the_same_estimated_camera_as_the_vo(monkeypatch):
     assert seen[0].fx == pytest.approx(result.intrinsics.fx)
     assert abs(seen[0].fx - guess.fx) > 0.1 * guess.fx            # the estimate, not the guess
     assert abs(seen[0].fx - scene.intrinsics.fx) < 0.05 * scene.intrinsics.fx
+
+
+def test_vo_bench_without_calib_runs_as_mona_vo_run_does_and_reports_the_focal_error():
+    from eval.vo_bench import render_sequence, run_variant
+    from mona_vo.pipeline import PipelineConfig
+
+    scene, frames, masks = render_sequence("pan", 0, 16, 320, 136)
+    given = run_variant(scene, frames, masks, "gt", PipelineConfig(), calib="given")
+    est = run_variant(scene, frames, masks, "gt", PipelineConfig(), calib="estimate")
+    assert given["calib"] == "given" and given["focal_error_pct"] == pytest.approx(0.0)
+    assert est["calib"] == "estimate" and est["focal_error_pct"] != 0.0
+    assert abs(est["focal_error_pct"]) < 5.0            # a pan: the rotation model finds it
