@@ -163,7 +163,7 @@ def _degenerate_landmarks(problem: BAProblem, usable: np.ndarray, min_ratio: flo
     projection Jacobian grows as 1 / depth: one landmark at 1e-6 of the median depth (left
     there by earlier windows, Bonn crowd) made J^T J about 1e13, no Levenberg-Marquardt step
     below GTSAM's damping bound reduced the error, and the window was returned unsolved
-    (0 iterations, 40 px RMSE) four times in a row before the map collapsed."""
+    (0 iterations, 40 px RMSE) four windows in a row."""
     sel = np.flatnonzero(usable)
     if not len(sel) or min_ratio <= 0:
         return np.zeros(0, np.int64)
@@ -249,8 +249,8 @@ def sliding_window_ba(problem: BAProblem, cfg: BAConfig = BAConfig(), *,
         # final kernel. Convex first, redescending second (graduated non-convexity in two
         # steps): Cauchy's weight falls to zero for a mover's point where Huber's only falls as
         # 1 / r, but started from a poor initial guess it can settle on the wrong inliers
-        # (generated fast rotation without masks, seed 107: 12.4 % of path with Cauchy alone,
-        # 2.0 % Huber alone, 3.0 % Huber then Cauchy).
+        # (generated fast rotation without masks, mixed seed 107: 12.4 % of path with Cauchy
+        # alone, 2.0 % Huber alone, 2.4 % Huber then Cauchy).
         r = reprojection_residuals(poses, landmarks, problem.intrinsics, obs_kf, obs_lm, obs_uv, focal)
         gross = usable & ~(r <= cfg.outlier_px)
         if gross.any() or cfg.final_kernel != cfg.robust_kernel:
