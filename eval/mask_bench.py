@@ -105,29 +105,43 @@ def davis_root_of(sequence: str, data: str | Path | None = None) -> Path:
 def davis_rows(root: str | Path | None = None,
                sequences: Sequence[str] = DAVIS_TUNE + DAVIS_VALIDATE,
                modes: Sequence[str] = ("boxes",),
-               config: MaskConfig | None = None, max_frames: int | None = None) -> list[dict]:
+               config: MaskConfig | None = None, max_frames: int | None = None,
+               calib: str = "guess") -> list[dict]:
     """One row per (sequence, prompt mode): J and F means over all frames, the sequence's
     split ('tune' or 'validate', by the board's DAVIS split) and the mean seconds per frame.
     ``root``: one DAVIS folder holding every sequence; None looks each one up in the shared
-    data (:func:`davis_root_of`)."""
+    data (:func:`davis_root_of`). ``calib``: ``guess`` gives the masker the 60-degree
+    field-of-view guess (as `mona-vo masks`); ``estimate`` the focal length that `mona-vo run`
+    estimates from the first 40 frames (:func:`mona_vo.calibration.estimate_focal`), as the
+    masks inside `run` get it; the row then carries ``focal_px``."""
     from data_tools.davis import DavisSequence
 
     config = config or MaskConfig()
     rows = []
     for seq in sequences:
         ds = DavisSequence(Path(root) if root is not None else davis_root_of(seq), seq)
+        intrinsics, extra = None, {}
+        if calib == "estimate":
+            from mona_vo.calibration import FocalConfig, estimate_focal
+            from mona_vo.pipeline import PipelineConfig
+
+            images = [f.image for f in ds.frames(max_frames=FocalConfig().frames)]
+            h, w = images[0].shape[:2]
+            est = estimate_focal(images, PipelineConfig().guessed_intrinsics(w, h), FocalConfig())
+            intrinsics = est.intrinsics_for(w, h)
+            extra = {"focal_px": float(intrinsics.fx)}
         for mode in modes:
             cfg = dataclasses.replace(config, prompt=mode)
             frames = ((f.index, f.image) for f in ds.frames(max_frames=max_frames))
             t0 = time.perf_counter()
-            preds = [out.mask for out in _masks(frames, cfg)]
+            preds = [out.mask for out in _masks(frames, cfg, intrinsics)]
             sec = (time.perf_counter() - t0) / max(len(preds), 1)
             gts = [m for m, _ in zip(ds.masks(), preds)]
             metrics = evaluate_mask_sequence(preds, gts)
             split = "tune" if seq in DAVIS_TUNE else "validate" if seq in DAVIS_VALIDATE else "-"
             rows.append({"sequence": seq, "split": split, "prompt": mode,
                          "frames": metrics.n_frames, "J": metrics.J_mean, "F": metrics.F_mean,
-                         "s_per_frame": sec})
+                         "s_per_frame": sec, **extra})
     return rows
 
 
@@ -214,6 +228,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--frames", type=int, default=30, help="frames per synthetic scene")
     parser.add_argument("--size", default="1024x436", help="synthetic image size WxH")
     parser.add_argument("--modes", default="boxes", help="DAVIS prompt modes: boxes,points,raw-boxes")
+    parser.add_argument("--calib", choices=("guess", "estimate"), default="guess",
+                        help="DAVIS: the masker's camera, the 60-degree guess (as `mona-vo masks`) "
+                             "or the focal length `mona-vo run` estimates (default guess)")
     args = parser.parse_args(argv)
     parts = set(args.parts.split(","))
     seeds: list[int] = []
@@ -225,7 +242,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         print("== speed (ms per frame per stage) ==")
         print(format_table(speed_rows()), flush=True)
     if "davis" in parts and (SHARED_DATA / "davis2016").is_dir():
-        rows = davis_rows(modes=tuple(args.modes.split(",")))
+        rows = davis_rows(modes=tuple(args.modes.split(",")), calib=args.calib)
         print("\n== DAVIS-2016 (J, F) per sequence and prompt mode ==")
         print(format_table(rows))
         print("\n== DAVIS-2016 means: tuning part, validation part, all ==")
