@@ -141,7 +141,7 @@ class _CallerMasks:
         return m
 
 
-def _estimate_focal(frames: Iterable, config: "PipelineConfig"):
+def estimate_focal_ahead(frames: Iterable, config: "PipelineConfig"):
     """Read the first ``config.calibration.frames`` frames, estimate the focal length from them
     (:func:`mona_vo.calibration.estimate_focal`) and return (the whole stream again, estimate)."""
     import itertools
@@ -180,7 +180,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     if intrinsics is None and config.calibration.mode == "estimate":
         # Without intrinsics the focal length comes from the first frames (read ahead, then
         # replayed); the VO uses it, the report says how it was found.
-        frames, calibration = _estimate_focal(frames, config)
+        frames, calibration = estimate_focal_ahead(frames, config)
     timings: dict[str, float] = {}
     vo: VisualOdometry | None = None
     names: list[str] = []

@@ -172,10 +172,13 @@ def _cpu_count() -> int:
 def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineConfig | None = None,
                stride: int = 1, max_frames: int | None = None, progress: bool = True) -> dict:
     """MONA masks of a video or folder, written to ``out_dir/masks/<frame name>.png`` with
-    ``out_dir/masks_report.json`` (staged like :func:`run`'s outputs, renamed into place at the end)."""
+    ``out_dir/masks_report.json`` (staged like :func:`run`'s outputs, renamed into place at the end).
+    The masks use the camera :func:`run` would use without ``--calib`` (the focal length estimated
+    from the first frames, else the field-of-view guess), so they are the masks `run` computes."""
     from data_tools.frames import open_frames
     from data_tools.run_outputs import RunOutputs
     from mona_vo.masks import compute_masks
+    from mona_vo.pipeline import estimate_focal_ahead
 
     config = config or PipelineConfig()
     source = open_frames(input_path, stride=stride, max_frames=max_frames)
@@ -191,8 +194,13 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
         bar, update = _progress_bar(len(source), "mona-vo masks", progress)
         t0 = time.perf_counter()
         try:
-            guess = config.guessed_intrinsics(source.width, source.height)
-            for n, mf in enumerate(compute_masks(remember(source), config.masks, guess,
+            frames, estimate = source, None
+            if config.calibration.mode == "estimate":
+                frames, estimate = estimate_focal_ahead(source, config)
+            w, h = source.width, source.height
+            camera = estimate.intrinsics_for(w, h) if estimate is not None \
+                else config.guessed_intrinsics(w, h)
+            for n, mf in enumerate(compute_masks(remember(frames), config.masks, camera,
                                                  **config.masker_backends()), start=1):
                 outputs.add_mask(names.pop(mf.index), mf.mask)
                 coverage.append(float(mf.mask.mean()))
@@ -204,6 +212,12 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
         report = {"input": str(input_path), "frames": len(coverage), "seconds": round(seconds, 3),
                   "frames_per_second": round(len(coverage) / seconds, 2) if seconds > 0 else None,
                   "mean_mask_coverage": float(np.mean(coverage)) if coverage else 0.0,
+                  "calibration": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
+                                  "source": "estimated from the first frames"
+                                            if getattr(estimate, "used", False) else
+                                            f"{config.assumed_hfov_deg:g}-degree field-of-view guess",
+                                  "focal_estimate": estimate.as_dict() if estimate is not None
+                                                    else None},
                   "config": to_dict(config)}
         outputs.commit_masks("masks_report.json", report)
     return report

@@ -118,6 +118,23 @@ def test_masks_command_writes_one_mask_per_frame(mona_vo_exe, small_scene, tmp_p
     assert sum(o > 0 for o in overlaps) >= 6
 
 
+def test_masks_command_uses_the_camera_run_uses(mona_vo_exe, small_scene, tmp_path):
+    """Without --calib, `masks` and `run` give MONA the same camera (the focal length estimated
+    from the first frames, else the guess), so `masks` writes the masks `run` computes."""
+    folder, _ = small_scene
+    cli(mona_vo_exe, "masks", folder, "--out", tmp_path / "m", "--max-frames", 12)
+    cli(mona_vo_exe, "run", folder, "--out", tmp_path / "r", "--max-frames", 12, "--masks", "none")
+    masks = json.loads((tmp_path / "m" / "masks_report.json").read_text())["calibration"]
+    run = json.loads((tmp_path / "r" / "report.json").read_text())["calibration"]
+    assert masks["fx"] == pytest.approx(run["fx"]) and masks["source"] == run["source"]
+    assert (masks["focal_estimate"] is None) == (run["focal_estimate"] is None)
+    cli(mona_vo_exe, "masks", folder, "--out", tmp_path / "g", "--max-frames", 12,
+        "--set", "calibration.mode=guess", "--set", "assumed_hfov_deg=75")
+    guess = json.loads((tmp_path / "g" / "masks_report.json").read_text())["calibration"]
+    assert guess["source"] == "75-degree field-of-view guess" and guess["focal_estimate"] is None
+    assert guess["fx"] == pytest.approx(0.5 * 384 / np.tan(np.radians(75 / 2)))
+
+
 def test_demo_prints_the_three_variants_and_where_its_outputs_are(mona_vo_exe, tmp_path):
     proc = cli(mona_vo_exe, "demo", "--size", "384x164", "--frames", 16, "--out", tmp_path / "d")
     lines = proc.stdout.splitlines()
