@@ -157,6 +157,15 @@ def estimate_focal_ahead(frames: Iterable, config: "PipelineConfig"):
     return itertools.chain(head, it), est
 
 
+def camera_without_calib(estimate, config: "PipelineConfig", width: int, height: int) -> Intrinsics:
+    """The one camera of a run without intrinsics, for the VO and the masks alike: the focal-length
+    estimate (:func:`estimate_focal_ahead`; it holds the guess when it was not taken) when there
+    is one, else the ``assumed_hfov_deg`` guess. MONA's epipolar test on a wrong focal length
+    turns near parallax into motion, so the masks must not keep the guess the VO dropped."""
+    return estimate.intrinsics_for(width, height) if estimate is not None \
+        else config.guessed_intrinsics(width, height)
+
+
 def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                         config: PipelineConfig | None = None,
                         on_frame: Callable[[FrameOutput], None] | None = None,
@@ -200,12 +209,6 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
 
     pending: deque = deque()   # frames waiting for their MONA mask
 
-    def camera_without_calib(w: int, h: int) -> Intrinsics:
-        # One camera for the VO and the masks: the estimate when there is one, else the guess
-        # (MONA's epipolar test on a wrong focal length turns near parallax into motion).
-        return calibration.intrinsics_for(w, h) if calibration is not None \
-            else config.guessed_intrinsics(w, h)
-
     def feed(frame, mask, mona=None, vo_mask=None):
         # vo_mask: what the VO sees; MONA's masks reach it only when reliable
         # (MaskFrame.reliable: not too large, not flickering), else the VO relies on its own
@@ -215,7 +218,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             vo_mask = mask
         intr = _intrinsics_for(intrinsics, frame, *size)
         if vo is None:
-            first_intr = intr or camera_without_calib(*size)
+            first_intr = intr or camera_without_calib(calibration, config, *size)
             vo = VisualOdometry(config.vo, size[0], size[1], first_intr,
                                 tracker=config.build_tracker())
         if on_frame is not None:
@@ -248,7 +251,8 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
 
                 # MONA's camera model uses the intrinsics when known, else the VO's camera.
                 masker = MonaMasker(config.masks, _intrinsics_for(intrinsics, frame, w, h)
-                                    or camera_without_calib(w, h), **config.masker_backends())
+                                    or camera_without_calib(calibration, config, w, h),
+                                    **config.masker_backends())
             pending.append(frame)
             drain(masker.push(frame.index, frame.image))
         else:

@@ -15,7 +15,8 @@ from mona_vo import __version__
 from mona_vo.config import to_dict
 from mona_vo.conventions import Intrinsics
 from mona_vo.errors import InputError
-from mona_vo.pipeline import FrameOutput, PipelineConfig, estimate_trajectory
+from mona_vo.pipeline import (FrameOutput, PipelineConfig, camera_without_calib,
+                              estimate_focal_ahead, estimate_trajectory)
 
 
 def _progress_bar(total: int | None, desc: str, enabled: bool):
@@ -133,8 +134,7 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "mean_mask_coverage": float(result.mask_coverage.mean()) if result.n_frames else 0.0,
         "calibration": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
                         "source": "given" if calib_given else
-                                  "estimated from the first frames" if _focal_estimated(result) else
-                                  f"{config.assumed_hfov_deg:g}-degree field-of-view guess",
+                                  _camera_source(_focal_estimated(result), config),
                         "focal_used": vo.focal,
                         "focal_estimate": _focal_evidence(result)},
         "seconds": per_stage,
@@ -151,6 +151,12 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "config": to_dict(config),
         "machine": {"cpu_count": _cpu_count(), "platform": platform.platform()},
     }
+
+
+def _camera_source(estimated: bool, config: PipelineConfig) -> str:
+    """How a run without --calib found its camera, as the reports say it."""
+    return ("estimated from the first frames" if estimated
+            else f"{config.assumed_hfov_deg:g}-degree field-of-view guess")
 
 
 def _focal_estimated(result) -> bool:
@@ -178,7 +184,6 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
     from data_tools.frames import open_frames
     from data_tools.run_outputs import RunOutputs
     from mona_vo.masks import compute_masks
-    from mona_vo.pipeline import estimate_focal_ahead
 
     config = config or PipelineConfig()
     source = open_frames(input_path, stride=stride, max_frames=max_frames)
@@ -197,9 +202,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
             frames, estimate = source, None
             if config.calibration.mode == "estimate":
                 frames, estimate = estimate_focal_ahead(source, config)
-            w, h = source.width, source.height
-            camera = estimate.intrinsics_for(w, h) if estimate is not None \
-                else config.guessed_intrinsics(w, h)
+            camera = camera_without_calib(estimate, config, source.width, source.height)
             for n, mf in enumerate(compute_masks(remember(frames), config.masks, camera,
                                                  **config.masker_backends()), start=1):
                 outputs.add_mask(names.pop(mf.index), mf.mask)
@@ -213,9 +216,8 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
                   "frames_per_second": round(len(coverage) / seconds, 2) if seconds > 0 else None,
                   "mean_mask_coverage": float(np.mean(coverage)) if coverage else 0.0,
                   "calibration": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
-                                  "source": "estimated from the first frames"
-                                            if getattr(estimate, "used", False) else
-                                            f"{config.assumed_hfov_deg:g}-degree field-of-view guess",
+                                  "source": _camera_source(getattr(estimate, "used", False),
+                                                           config),
                                   "focal_estimate": estimate.as_dict() if estimate is not None
                                                     else None},
                   "config": to_dict(config)}
