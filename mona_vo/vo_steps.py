@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from mona_vo.conventions import Intrinsics, invert_pose, make_pose
+from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
 from mona_vo.geometry import cauchy_dynamic_probability, reprojection_errors, reprojection_residuals
 from mona_vo.two_view import rotation_parallax_deg, triangulate
 
@@ -136,8 +136,15 @@ def triangulate_against(views, ids: np.ndarray, uv: np.ndarray, intr: Intrinsics
                         ) -> tuple[np.ndarray, np.ndarray]:
     """New landmarks for tracks (ids (N,), uv (N, 2)) of a frame at T_world_cam, each from the
     oldest of ``views`` that saw it (the widest baseline) whose two rays meet within
-    max_error_px at an angle >= min_angle_deg. views: iterable of (T_world_cam, Intrinsics,
-    ids, uv), oldest first. Returns (ids (K,), points (K, 3) world)."""
+    max_error_px at an angle >= min_angle_deg, and that every other view which saw it also
+    sees within max_error_px. views: iterable of (T_world_cam, Intrinsics, ids, uv), oldest
+    first. Returns (ids (K,), points (K, 3) world).
+
+    Why every view: two rays almost always meet when the point moved along its epipolar line
+    between the two frames (a person walking ahead of a camera that follows); a third view
+    at another point of the camera's path rarely agrees. On Bonn crowd, such points were
+    triangulated at a twentieth of the map's depth and took over the poses."""
+    views = list(views)
     done = np.zeros(len(ids), bool)
     out_ids, out_X = [], []
     for T_v, intr_v, ids_v, uv_v in views:
@@ -148,6 +155,15 @@ def triangulate_against(views, ids: np.ndarray, uv: np.ndarray, intr: Intrinsics
             continue
         X, err, ang = triangulate(T_v, T_world_cam, uv_v[ia], uv[ib], intr_v, intr)
         good = (err < max_error_px) & (ang >= min_angle_deg)
+        for T_o, intr_o, ids_o, uv_o in views:
+            if T_o is T_v:
+                continue
+            _, ja, jb = np.intersect1d(ids_o, ids[ib], return_indices=True)
+            if not len(jb):
+                continue
+            px, z = reproject(T_o, X[jb], intr_o)
+            miss = ~(z > 0) | ~(np.hypot(*(px - uv_o[ja]).T) < max_error_px)
+            good[jb[miss]] = False
         out_ids.append(ids[ib][good])
         out_X.append(X[good])
         done[ib[good]] = True

@@ -105,6 +105,27 @@ def test_triangulation_takes_the_oldest_view_and_rejects_short_baselines():
     assert len(ids2) == 0
 
 
+def test_triangulation_needs_every_view_to_agree_so_a_mover_along_its_epipolar_lines_is_left_out():
+    # A camera walking forward behind people who walk the same way at a changing pace: in any
+    # two views a point moving along the direction of travel stays on its epipolar line, so two
+    # rays always meet; the view in between does not see the point where they meet.
+    P = _points(100, near=3.0, far=8.0)
+    cams = [_pose(0, (0, 0, 0.0)), _pose(0, (0.05, 0, 0.5)), _pose(0, (0.1, 0, 1.0))]
+    walk = [0.0, 0.1, 0.45]            # metres the movers (ids 50-99) walked, per view
+    def seen(i):
+        Q = P.copy()
+        Q[50:, 2] += walk[i]
+        return _see(cams[i], Q)
+    views = [(cams[i], INTR, np.arange(100), seen(i)) for i in range(2)]
+    ids, X = triangulate_against(views, np.arange(100), seen(2), INTR, cams[2], 2.0, 0.3)
+    assert set(range(50)) <= set(ids.tolist())
+    np.testing.assert_allclose(X[ids < 50], P[ids[ids < 50]], atol=1e-6)
+    assert (ids >= 50).sum() <= 5
+    # With the oldest and the newest view alone, the movers pass: the check is what stops them.
+    ids2, _ = triangulate_against(views[:1], np.arange(100), seen(2), INTR, cams[2], 2.0, 0.3)
+    assert (ids2 >= 50).sum() >= 35
+
+
 def test_interpolate_pose_halfway():
     T = interpolate_pose(_pose(0, (0, 0, 0)), _pose(10.0, (1, 0, 0)), 0.5)
     assert abs(np.degrees(np.linalg.norm(Rotation.from_matrix(T[:3, :3]).as_rotvec())) - 5.0) < 1e-9
