@@ -13,7 +13,10 @@ Same policies as the sliding window (:mod:`ba.sliding_window_ba`):
 - masks: an observation flagged ``obs_masked`` is not added, and a landmark observed inside a mask
   in any keyframe is dropped as a whole; both are counted;
 - outliers: after the first solve, observations with a residual above ``outlier_px`` are removed
-  and the problem is solved again from the first solution;
+  and the problem is solved again from the first solution, under ``final_kernel`` (Cauchy by
+  default: a mover the masks missed then weighs nothing, where Huber's weight only falls as 1/r;
+  started from the Huber solution, as in the window, so the non-convex kernel starts near the
+  right inliers);
 - landmarks with fewer than ``min_observations`` usable observations are left out.
 
 Gauge: monocular BA is free in 7 degrees of freedom (rotation, translation and scale of the
@@ -173,7 +176,8 @@ def _gauge(T: np.ndarray, obs_kf: np.ndarray, lm_row: np.ndarray, n_lm: int, usa
 
 
 def _solve(g: KeyframeGraph, cfg: BAConfig, usable, lm_row, held, anchors, T0, P0,
-           refine_focal: bool, focal_start: float | None, max_iterations: int):
+           refine_focal: bool, focal_start: float | None, max_iterations: int,
+           kernel: str | None = None):
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     lm_used = np.unique(lm_row[usable])
@@ -199,7 +203,7 @@ def _solve(g: KeyframeGraph, cfg: BAConfig, usable, lm_row, held, anchors, T0, P
     sel = np.flatnonzero(usable)
     cal_rows, cal_index = np.unique(g.intrinsics[g.obs_kf[sel]], axis=0, return_inverse=True)
     cals = [gtsam.Cal3_S2(r[0], r[1], 0.0, r[2], r[3]) for r in cal_rows]
-    noise = robust_pixel_noise(cfg.pixel_sigma, cfg.robust_kernel, cfg.robust_k)
+    noise = robust_pixel_noise(cfg.pixel_sigma, kernel or cfg.robust_kernel, cfg.robust_k)
     add_projection_factors(graph, noise, g.obs_uv[sel], g.obs_kf[sel], lm_row[sel],
                            calibrations=cals, cal_index=cal_index.ravel(), shared_focal=refine_focal)
     T, P = T0.copy(), P0.copy()
@@ -253,13 +257,14 @@ def refine_global(graph: KeyframeGraph, config: BAConfig = BAConfig(), *,
     if config.resolve_without_outliers and iterations:
         r = reprojection_errors(T[obs_kf], P[lm_row], intr_obs, g.obs_uv, focal)
         gross = usable & ~(r <= config.outlier_px)
-        if gross.any():
+        if gross.any() or config.final_kernel != config.robust_kernel:
             n_outliers = int(gross.sum())
             usable = _constrained(lm_row, usable & ~gross, n_lm, config.min_observations)
             # Removing outliers can leave a keyframe too few points: place the gauge again.
             held, anchors, n_parts, reasons = _gauge(T, obs_kf, lm_row, n_lm, usable)
             T, P, focal, more = _solve(g, config, usable, lm_row, held, anchors, T, P,
-                                       refine_focal, focal, config.global_max_iterations)
+                                       refine_focal, focal, config.global_max_iterations,
+                                       kernel=config.final_kernel)
             iterations += more
     r = reprojection_errors(T[obs_kf], P[lm_row], intr_obs, g.obs_uv, focal)
     lm_valid = np.zeros(n_lm, bool)

@@ -39,9 +39,10 @@ __all__ = ["BAConfig", "BAProblem", "BAResult", "sliding_window_ba", "observatio
 class BAConfig:
     pixel_sigma: float = setting(1.0, gt=0)  # px; standard deviation of a tracked point's position
     robust_kernel: str = setting("huber", choices=("huber", "cauchy", "none"))  # on the whitened
-                                     # pixel residual (window's first solve; global refinement)
-    final_kernel: str = setting("cauchy", choices=("huber", "cauchy", "none"))  # the window's
-                                     # second solve, started from the first's solution
+                                     # pixel residual (first solve of the window and of the
+                                     # global refinement)
+    final_kernel: str = setting("cauchy", choices=("huber", "cauchy", "none"))  # their second
+                                     # solves, started from the first's solution
     robust_k: float = setting(1.5, gt=0)  # kernel width in sigmas (Huber's k, Cauchy's c)
     max_iterations: int = setting(8, ge=1)  # Levenberg-Marquardt iterations per window solve
     outlier_px: float = setting(3.0, gt=0)  # after solving, residuals above this are reported

@@ -211,3 +211,25 @@ def test_inconsistent_graph_is_refused():
                         g.obs_uv, g.obs_masked, g.lm_ids, g.lm_xyz)
     with pytest.raises(ValueError, match="intrinsics"):
         refine_global(bad)
+
+
+def test_second_solve_is_cauchy_and_discounts_slipped_tracks_below_the_outlier_bound():
+    # 10 % of the observations slipped by 1.5-2.9 px (a track at an occluding edge, a patch
+    # that changed): under the 3 px outlier bound, so only the kernel can discount them. On
+    # Gaussian noise alone the Cauchy solve is about 10 % worse than Huber (measured on these
+    # graphs); on rendered scenes, whose tracking errors have such tails, it was better on
+    # tuning and validation alike (README).
+    g, gt, _ = make_graph(seed=5, n_kf=24, n_lm=800, pixel_noise=0.3)
+    rng = np.random.default_rng(5)
+    bad = rng.random(len(g.obs_uv)) < 0.1
+    ang, mag = rng.uniform(0, 2 * np.pi, bad.sum()), rng.uniform(1.5, 2.9, bad.sum())
+    uv = g.obs_uv.copy()
+    uv[bad] += np.stack([np.cos(ang), np.sin(ang)], 1) * mag[:, None]
+    g_s = KeyframeGraph(g.kf_frames, g.T_world_cam, g.intrinsics, g.obs_kf, g.obs_lm, uv,
+                        g.obs_masked, g.lm_ids, g.lm_xyz)
+    huber = refine_global(g_s, BAConfig(final_kernel="huber"))
+    cauchy = refine_global(g_s, BAConfig())
+    assert cauchy.iterations > huber.iterations          # the Cauchy stage ran
+    t_h = _pose_errors(huber.T_world_cam, gt)[0].mean()
+    t_c = _pose_errors(cauchy.T_world_cam, gt)[0].mean()
+    assert t_c < 0.85 * t_h, (t_c, t_h)
