@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
+from mona_vo.conventions import Intrinsics, invert_pose, make_pose
 from mona_vo.geometry import cauchy_dynamic_probability, reprojection_errors, reprojection_residuals
 from mona_vo.two_view import rotation_parallax_deg, triangulate
 
@@ -161,9 +161,7 @@ def triangulate_against(views, ids: np.ndarray, uv: np.ndarray, intr: Intrinsics
             _, ja, jb = np.intersect1d(ids_o, ids[ib], return_indices=True)
             if not len(jb):
                 continue
-            px, z = reproject(T_o, X[jb], intr_o)
-            miss = ~(z > 0) | ~(np.hypot(*(px - uv_o[ja]).T) < max_error_px)
-            good[jb[miss]] = False
+            good[jb[~(reprojection_errors(T_o, X[jb], uv_o[ja], intr_o) < max_error_px)]] = False
         out_ids.append(ids[ib][good])
         out_X.append(X[good])
         done[ib[good]] = True
