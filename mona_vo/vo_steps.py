@@ -147,7 +147,7 @@ def triangulate_against(views, ids: np.ndarray, uv: np.ndarray, intr: Intrinsics
     views = list(views)
     done = np.zeros(len(ids), bool)
     out_ids, out_X = [], []
-    for T_v, intr_v, ids_v, uv_v in views:
+    for i, (T_v, intr_v, ids_v, uv_v) in enumerate(views):
         _, ia, ib = np.intersect1d(ids_v, ids, return_indices=True)
         sel = ~done[ib]
         ia, ib = ia[sel], ib[sel]
@@ -155,8 +155,8 @@ def triangulate_against(views, ids: np.ndarray, uv: np.ndarray, intr: Intrinsics
             continue
         X, err, ang = triangulate(T_v, T_world_cam, uv_v[ia], uv[ib], intr_v, intr)
         good = (err < max_error_px) & (ang >= min_angle_deg)
-        for T_o, intr_o, ids_o, uv_o in views:
-            if T_o is T_v:
+        for j, (T_o, intr_o, ids_o, uv_o) in enumerate(views):
+            if j == i:
                 continue
             _, ja, jb = np.intersect1d(ids_o, ids[ib], return_indices=True)
             if not len(jb):
