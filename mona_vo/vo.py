@@ -45,7 +45,8 @@ from mona_vo.two_view import (homography_parallax_px, relative_pose, rotation_on
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dynamic_test,
                               estimate_pose, interpolate_pose, keyframe_needed, predict_pose,
-                              rotation_free_parallax_px, triangulate_against, typical_speed)
+                              refine_pose, rotation_free_parallax_px, triangulate_against,
+                              typical_speed)
 
 # Per-frame status strings (FrameStatus values), from most to least trustworthy.
 KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED = (
@@ -358,6 +359,9 @@ class VisualOdometry:
             self._make_keyframe(t, gray, obs, intr, mask, T, n_inl)
         else:
             self._write_relative(t, FrameStatus.TRACKED, n_inl, last, T)
+            if self.cfg.refine == "global":
+                s = self._static(obs)
+                m.frames.add_observations(t, s.ids, s.uv)
 
     def _flag_dynamic(self, obs: Observation, intr, T) -> None:
         lm = self.map.landmarks
@@ -646,7 +650,8 @@ class VisualOdometry:
             return {}
         res = refine_global(graph, self.cfg.ba)
         kf, lm = self.map.keyframes, self.map.landmarks
-        # Every frame tied to a keyframe follows it (re-attached by its relative pose).
+        # Every frame tied to a keyframe follows it (re-attached by its relative pose); tracked
+        # frames are then posed again on the refined map (_repose_tracked_frames).
         kf.T_world_cam[:kf.n] = res.T_world_cam
         valid = np.asarray(res.lm_valid, bool)
         lm.set_positions(graph.lm_ids[valid], np.asarray(res.lm_xyz)[valid])
@@ -654,7 +659,30 @@ class VisualOdometry:
         self.drops["ba_masked_landmarks"] += int(res.masked_landmarks)
         if np.isfinite(res.rmse_px):
             self._rmse = float(res.rmse_px)
+        reposed = self._repose_tracked_frames()
         self.timings["global_ba"] += time.perf_counter() - t0
         return {"keyframes": int(kf.n), "landmarks": int(valid.sum()),
                 "observations_used": int(res.n_observations_used),
-                "rmse_px": float(res.rmse_px), "seconds": float(res.seconds)}
+                "rmse_px": float(res.rmse_px), "seconds": float(res.seconds),
+                "frames_reposed": reposed}
+
+    def _repose_tracked_frames(self) -> int:
+        """Every tracked frame posed again on the refined map, from where its keyframe took it.
+        Moving a frame with its keyframe keeps the relative pose PnP found on the map as it was
+        then, in that window's scale and with that window's errors; on a following shot (mixed
+        103) the frames between keyframes drifted to 5x the keyframes' error. Returns the
+        number of frames re-posed (the others keep the pose they followed)."""
+        m, lm, kf = self.map, self.map.landmarks, self.map.keyframes
+        n = 0
+        for t, ids, uv in m.frames.observation_groups():
+            ref = int(m.frames.ref_kf[t])
+            have = lm.usable(ids)
+            if ref < 0 or have.sum() < self.cfg.pnp_min_inliers:
+                continue
+            T, _ = refine_pose(lm.positions(ids[have]), uv[have], kf.intrinsics(ref), m.pose_of(t),
+                               self.cfg.pnp_guided_px, self._pose_settings,
+                               self.cfg.pnp_guided_min_share)
+            if T is not None:
+                m.frames.repose(t, invert_pose(kf.T_world_cam[ref]) @ T)
+                n += 1
+        return n

@@ -186,7 +186,11 @@ class KeyframeTable:
 
 
 class FrameTable:
-    """One row per frame. status: (N,) int8 index into FrameStatus (-1: not written yet)."""
+    """One row per frame. status: (N,) int8 index into FrameStatus (-1: not written yet).
+
+    Observations kept for the global refinement's re-posing (tracked frames only, and only when
+    asked): flat arrays obs_frame (M,) int64 frame, obs_lm (M,) int64 landmark id, obs_uv (M, 2)
+    float32 pixels, in the order they were added (about 20 bytes each)."""
 
     def __init__(self):
         self.n = 0
@@ -195,6 +199,34 @@ class FrameTable:
         self.inliers = np.zeros(0, np.int64)
         self.ref_kf = np.zeros(0, np.int64)
         self.T = np.zeros((0, 4, 4))      # T_kf_frame when ref_kf >= 0, else T_world_cam
+        self.m = 0
+        self.obs_frame = np.zeros(0, np.int64)
+        self.obs_lm = np.zeros(0, np.int64)
+        self.obs_uv = np.zeros((0, 2), np.float32)
+
+    def add_observations(self, t: int, ids: np.ndarray, uv: np.ndarray) -> None:
+        m0, m1 = self.m, self.m + len(ids)
+        self.obs_frame = _grow(self.obs_frame, m1, -1)
+        self.obs_lm = _grow(self.obs_lm, m1, -1)
+        self.obs_uv = _grow(self.obs_uv, m1, 0.0)
+        self.obs_frame[m0:m1], self.obs_lm[m0:m1], self.obs_uv[m0:m1] = t, ids, uv
+        self.m = m1
+
+    def observation_groups(self):
+        """(frame, ids, uv float64) for each frame with kept observations, in frame order."""
+        order = np.argsort(self.obs_frame[:self.m], kind="stable")
+        frames = self.obs_frame[order]
+        starts = np.flatnonzero(np.r_[True, frames[1:] != frames[:-1]]) if len(frames) else []
+        ends = list(starts[1:]) + [len(frames)] if len(frames) else []
+        for a, b in zip(starts, ends):
+            rows = order[a:b]
+            yield int(frames[a]), self.obs_lm[rows], self.obs_uv[rows].astype(np.float64)
+
+    def repose(self, t: int, T_kf_frame: np.ndarray) -> None:
+        """A new pose for frame t, written relative to its keyframe; status stays as written."""
+        if self.ref_kf[t] < 0:
+            raise RuntimeError(f"frame {t}: only a frame tied to a keyframe can be re-posed")
+        self.T[t] = T_kf_frame
 
     def append(self, timestamp: float) -> int:
         t = self.n

@@ -77,3 +77,24 @@ def test_an_attached_frame_keeps_its_pose_and_status_then_follows_its_keyframe()
     np.testing.assert_allclose(m.pose_of(0)[:3, 3], [2.5, 0.2, 0.1])
     with pytest.raises(RuntimeError, match="absolute pose"):
         m.frames.attach(0, row, T_kf)      # already relative
+
+
+def test_frame_observations_come_back_grouped_by_frame_and_a_reposed_frame_keeps_its_status():
+    m = VOMap()
+    k = m.keyframes.add(0, np.eye(4), Intrinsics(500, 500, 320, 240), 0, np.arange(3),
+                        np.zeros((3, 2)), np.zeros(3, bool))
+    for t in range(3):
+        m.frames.append(float(t))
+    m.frames.write(2, FrameStatus.TRACKED, 30, ref_kf=k, T=np.eye(4))
+    m.frames.add_observations(2, np.array([5, 6]), np.array([[1.0, 2.0], [3.0, 4.0]]))
+    m.frames.add_observations(1, np.array([7]), np.array([[5.0, 6.0]]))
+    groups = list(m.frames.observation_groups())
+    assert [g[0] for g in groups] == [1, 2]
+    assert groups[1][1].tolist() == [5, 6] and groups[1][2].tolist() == [[1, 2], [3, 4]]
+    moved = make_pose(np.eye(3), [0.1, 0, 0])
+    m.frames.repose(2, moved)
+    np.testing.assert_allclose(m.pose_of(2), moved)
+    assert m.frames.status_of(2) is FrameStatus.TRACKED
+    m.frames.write(1, FrameStatus.ROTATION_ONLY, 0, T=np.eye(4))
+    with pytest.raises(RuntimeError):
+        m.frames.repose(1, moved)        # absolute poses are not re-posed
