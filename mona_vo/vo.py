@@ -505,6 +505,9 @@ class VisualOdometry:
         for w, T, n in posed:
             if w.frame not in mids:
                 self._write_relative(w.frame, FrameStatus.BOOTSTRAP, n, row0, T)
+                if self.cfg.refine == "global":
+                    s_w = self._static(w.obs)
+                    m.frames.add_observations(w.frame, s_w.ids, s_w.uv)
         for w, _, n in rest:
             if w.frame > k0.frame:
                 a = (w.frame - k0.frame) / max(t - k0.frame, 1)
@@ -667,11 +670,12 @@ class VisualOdometry:
                 "frames_reposed": reposed}
 
     def _repose_tracked_frames(self) -> int:
-        """Every tracked frame posed again on the refined map, from where its keyframe took it.
-        Moving a frame with its keyframe keeps the relative pose PnP found on the map as it was
-        then, in that window's scale and with that window's errors; on a following shot (mixed
-        103) the frames between keyframes drifted to 5x the keyframes' error. Returns the
-        number of frames re-posed (the others keep the pose they followed)."""
+        """Every tracked frame, and every frame posed by PnP when the first map was built
+        (bootstrap), posed again on the refined map from where its keyframe took it. Moving a
+        frame with its keyframe keeps the relative pose PnP found on the map as it was then, in
+        that window's scale and with that window's errors; on a following shot (mixed 103) the
+        frames between keyframes drifted to 5x the keyframes' error. Returns the number of
+        frames re-posed (the others keep the pose they followed)."""
         m, lm, kf = self.map, self.map.landmarks, self.map.keyframes
         n = 0
         for t, ids, uv in m.frames.observation_groups():
