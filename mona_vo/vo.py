@@ -653,8 +653,8 @@ class VisualOdometry:
             return {}
         res = refine_global(graph, self.cfg.ba)
         kf, lm = self.map.keyframes, self.map.landmarks
-        # Every frame tied to a keyframe follows it (re-attached by its relative pose); tracked
-        # frames are then posed again on the refined map (_repose_tracked_frames).
+        # Every frame tied to a keyframe follows it (re-attached by its relative pose); tracked and
+        # bootstrap frames are then posed again on the refined map (_repose_frames).
         kf.T_world_cam[:kf.n] = res.T_world_cam
         valid = np.asarray(res.lm_valid, bool)
         lm.set_positions(graph.lm_ids[valid], np.asarray(res.lm_xyz)[valid])
@@ -662,14 +662,14 @@ class VisualOdometry:
         self.drops["ba_masked_landmarks"] += int(res.masked_landmarks)
         if np.isfinite(res.rmse_px):
             self._rmse = float(res.rmse_px)
-        reposed = self._repose_tracked_frames()
+        reposed = self._repose_frames()
         self.timings["global_ba"] += time.perf_counter() - t0
         return {"keyframes": int(kf.n), "landmarks": int(valid.sum()),
                 "observations_used": int(res.n_observations_used),
                 "rmse_px": float(res.rmse_px), "seconds": float(res.seconds),
                 "frames_reposed": reposed}
 
-    def _repose_tracked_frames(self) -> int:
+    def _repose_frames(self) -> int:
         """Every tracked frame, and every frame posed by PnP when the first map was built
         (bootstrap), posed again on the refined map from where its keyframe took it. Moving a
         frame with its keyframe keeps the relative pose PnP found on the map as it was then, in
