@@ -112,7 +112,7 @@ def davis_rows(root: str | Path | None = None,
     ``root``: one DAVIS folder holding every sequence; None looks each one up in the shared
     data (:func:`davis_root_of`). ``calib``: ``guess`` gives the masker the 60-degree
     field-of-view guess (as `mona-vo masks`); ``estimate`` the focal length that `mona-vo run`
-    estimates from the first 40 frames (:func:`mona_vo.pipeline.estimate_focal_ahead`), as the
+    estimates from the first 40 frames (:func:`mona_vo.pipeline.camera_ahead`), as the
     masks inside `run` get it; the row then carries ``focal_px``."""
     from data_tools.davis import DavisSequence
 
@@ -122,12 +122,11 @@ def davis_rows(root: str | Path | None = None,
         ds = DavisSequence(Path(root) if root is not None else davis_root_of(seq), seq)
         intrinsics, extra = None, {}
         if calib == "estimate":
-            from mona_vo.pipeline import PipelineConfig, camera_without_calib, estimate_focal_ahead
+            from mona_vo.pipeline import PipelineConfig, camera_ahead
 
             pipeline = PipelineConfig()
             head = ds.frames(max_frames=pipeline.calibration.frames)
-            _, est = estimate_focal_ahead(head, pipeline)
-            intrinsics = camera_without_calib(est, pipeline, head.width, head.height)
+            _, _, intrinsics = camera_ahead(head, pipeline, head.width, head.height)
             extra = {"focal_px": float(intrinsics.fx)}
         for mode in modes:
             cfg = dataclasses.replace(config, prompt=mode)

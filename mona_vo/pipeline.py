@@ -166,6 +166,16 @@ def camera_without_calib(estimate, config: "PipelineConfig", width: int, height:
         else config.guessed_intrinsics(width, height)
 
 
+def camera_ahead(frames: Iterable, config: "PipelineConfig", width: int, height: int):
+    """The camera a run without intrinsics uses for ``frames`` (width x height): the focal-length
+    estimate from the first frames when ``calibration.mode`` is ``estimate``, else the guess.
+    Returns (the whole stream again, the estimate or None, the camera)."""
+    estimate = None
+    if config.calibration.mode == "estimate":
+        frames, estimate = estimate_focal_ahead(frames, config)
+    return frames, estimate, camera_without_calib(estimate, config, width, height)
+
+
 def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                         config: PipelineConfig | None = None,
                         on_frame: Callable[[FrameOutput], None] | None = None,

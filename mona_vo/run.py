@@ -15,8 +15,7 @@ from mona_vo import __version__
 from mona_vo.config import to_dict
 from mona_vo.conventions import Intrinsics
 from mona_vo.errors import InputError
-from mona_vo.pipeline import (FrameOutput, PipelineConfig, camera_without_calib,
-                              estimate_focal_ahead, estimate_trajectory)
+from mona_vo.pipeline import FrameOutput, PipelineConfig, camera_ahead, estimate_trajectory
 
 
 def _progress_bar(total: int | None, desc: str, enabled: bool):
@@ -199,10 +198,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
         bar, update = _progress_bar(len(source), "mona-vo masks", progress)
         t0 = time.perf_counter()
         try:
-            frames, estimate = source, None
-            if config.calibration.mode == "estimate":
-                frames, estimate = estimate_focal_ahead(source, config)
-            camera = camera_without_calib(estimate, config, source.width, source.height)
+            frames, estimate, camera = camera_ahead(source, config, source.width, source.height)
             for n, mf in enumerate(compute_masks(remember(frames), config.masks, camera,
                                                  **config.masker_backends()), start=1):
                 outputs.add_mask(names.pop(mf.index), mf.mask)

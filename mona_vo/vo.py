@@ -275,6 +275,13 @@ class VisualOdometry:
         T_kf = self.map.keyframes.T_world_cam[kf_row]
         self.map.frames.write(t, status, int(inliers), ref_kf=kf_row, T=invert_pose(T_kf) @ T_world_cam)
 
+    def _keep_for_repose(self, t: int, obs: Observation) -> None:
+        """Frame t's static tracks, for the global refinement to pose it again (_repose_frames);
+        nothing is kept when no refinement will run."""
+        if self.cfg.refine == "global":
+            s = self._static(obs)
+            self.map.frames.add_observations(t, s.ids, s.uv)
+
     def _static(self, obs: Observation) -> Observation:
         """Tracks that may support a pose: outside the mask and never flagged."""
         return obs.subset(~obs.masked & ~self.map.landmarks.flagged(obs.ids))
@@ -359,9 +366,7 @@ class VisualOdometry:
             self._make_keyframe(t, gray, obs, intr, mask, T, n_inl)
         else:
             self._write_relative(t, FrameStatus.TRACKED, n_inl, last, T)
-            if self.cfg.refine == "global":
-                s = self._static(obs)
-                m.frames.add_observations(t, s.ids, s.uv)
+            self._keep_for_repose(t, obs)
 
     def _flag_dynamic(self, obs: Observation, intr, T) -> None:
         lm = self.map.landmarks
@@ -505,9 +510,7 @@ class VisualOdometry:
         for w, T, n in posed:
             if w.frame not in mids:
                 self._write_relative(w.frame, FrameStatus.BOOTSTRAP, n, row0, T)
-                if self.cfg.refine == "global":
-                    s_w = self._static(w.obs)
-                    m.frames.add_observations(w.frame, s_w.ids, s_w.uv)
+                self._keep_for_repose(w.frame, w.obs)
         for w, _, n in rest:
             if w.frame > k0.frame:
                 a = (w.frame - k0.frame) / max(t - k0.frame, 1)
@@ -683,9 +686,9 @@ class VisualOdometry:
             have = lm.usable(ids)
             if ref < 0 or have.sum() < self.cfg.pnp_min_inliers:
                 continue
+            ps = self._pose_settings
             T, _ = refine_pose(lm.positions(ids[have]), uv[have], kf.intrinsics(ref), m.pose_of(t),
-                               self.cfg.pnp_guided_px, self._pose_settings,
-                               self.cfg.pnp_guided_min_share)
+                               ps.guided_px, ps, ps.guided_min_share)
             if T is not None:
                 m.frames.repose(t, invert_pose(kf.T_world_cam[ref]) @ T)
                 n += 1

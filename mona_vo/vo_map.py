@@ -188,8 +188,8 @@ class KeyframeTable:
 class FrameTable:
     """One row per frame. status: (N,) int8 index into FrameStatus (-1: not written yet).
 
-    Observations kept for the global refinement's re-posing (tracked frames only, and only when
-    asked): flat arrays obs_frame (M,) int64 frame, obs_lm (M,) int64 landmark id, obs_uv (M, 2)
+    Observations kept for the global refinement's re-posing (tracked and bootstrap frames, only
+    when a refinement will run): flat arrays obs_frame (M,) int64 frame, obs_lm (M,) int64 landmark id, obs_uv (M, 2)
     float32 pixels, in the order they were added (about 20 bytes each)."""
 
     def __init__(self):
@@ -215,12 +215,9 @@ class FrameTable:
     def observation_groups(self):
         """(frame, ids, uv float64) for each frame with kept observations, in frame order."""
         order = np.argsort(self.obs_frame[:self.m], kind="stable")
-        frames = self.obs_frame[order]
-        starts = np.flatnonzero(np.r_[True, frames[1:] != frames[:-1]]) if len(frames) else []
-        ends = list(starts[1:]) + [len(frames)] if len(frames) else []
-        for a, b in zip(starts, ends):
-            rows = order[a:b]
-            yield int(frames[a]), self.obs_lm[rows], self.obs_uv[rows].astype(np.float64)
+        frames, starts = np.unique(self.obs_frame[order], return_index=True)
+        for t, rows in zip(frames, np.split(order, starts[1:])):
+            yield int(t), self.obs_lm[rows], self.obs_uv[rows].astype(np.float64)
 
     def repose(self, t: int, T_kf_frame: np.ndarray) -> None:
         """A new pose for frame t, written relative to its keyframe; status stays as written."""
