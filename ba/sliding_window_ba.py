@@ -27,9 +27,10 @@ import numpy as np
 from gtsam.symbol_shorthand import K, L, X
 
 from ba.factors import (add_distance_prior, add_focal_variable, add_projection_factors,
-                        distance_error, focal_prior_error, levenberg_marquardt, robust_pixel_noise)
+                        distance_error, focal_prior_error, levenberg_marquardt, robust_pixel_noise,
+                        second_stage)
 from mona_vo.config import check_fields, setting
-from mona_vo.conventions import Intrinsics, pixels_in_mask, reproject
+from mona_vo.conventions import Intrinsics, camera_depths, pixels_in_mask, reproject
 
 __all__ = ["BAConfig", "BAProblem", "BAResult", "sliding_window_ba", "observations_in_masks",
            "reprojection_residuals", "focal_prior_error", "distance_error"]
@@ -53,6 +54,9 @@ class BAConfig:
                                      # left out
     focal_prior_ratio: float = setting(0.3, gt=0)  # with refine_focal: 1-sigma prior on f as a
                                      # fraction of f
+    centre_prior_frac: float = setting(0.02, gt=0)  # with refine_centre (global refinement):
+                                     # 1-sigma prior on the principal point's offset from where
+                                     # it started, fraction of the image width (2 cx)
     resolve_without_outliers: bool = setting(True)  # second solve without observations > outlier_px
     min_depth_ratio: float = setting(1e-3, ge=0, lt=1)  # a landmark nearer to a window camera
                                      # than this x the window's median depth (or behind it) is
@@ -170,7 +174,7 @@ def _degenerate_landmarks(problem: BAProblem, usable: np.ndarray, min_ratio: flo
         return np.zeros(0, np.int64)
     T = np.stack([problem.poses[int(k)] for k in problem.obs_kf[sel]])
     P = np.stack([np.asarray(problem.landmarks[int(j)], np.float64) for j in problem.obs_lm[sel]])
-    z = np.einsum("mj,mj->m", T[:, :3, 2], P - T[:, :3, 3])    # depth: R^T (p - t), third row
+    z = camera_depths(T, P)
     ahead = z[z > 0]
     if not len(ahead):
         return np.unique(problem.obs_lm[sel])
@@ -245,16 +249,9 @@ def sliding_window_ba(problem: BAProblem, cfg: BAConfig = BAConfig(), *,
                                   problem.intrinsics[min(problem.poses)].fx if refine_focal else None)
     poses, landmarks, focal, iterations = _solve(problem, cfg, usable, keep_lm, refine_focal)
     if cfg.resolve_without_outliers and iterations:
-        # Second stage: a robust kernel still feels gross outliers (a dragged track, a mover the
-        # masks missed); remove what the first solve cannot explain and solve again, with the
-        # final kernel. Convex first, redescending second (graduated non-convexity in two
-        # steps): Cauchy's weight falls to zero for a mover's point where Huber's only falls as
-        # 1 / r, but started from a poor initial guess it can settle on the wrong inliers
-        # (generated fast rotation without masks, mixed seed 107: 12.4 % of path with Cauchy
-        # alone, 2.0 % Huber alone, 2.4 % Huber then Cauchy).
         r = reprojection_residuals(poses, landmarks, problem.intrinsics, obs_kf, obs_lm, obs_uv, focal)
-        gross = usable & ~(r <= cfg.outlier_px)
-        if gross.any() or cfg.final_kernel != cfg.robust_kernel:
+        gross = second_stage(usable, r, cfg)
+        if gross is not None:
             usable, keep_lm = _constrained(obs_kf, obs_lm, usable & ~gross, free_kf,
                                            cfg.min_observations)
             warm = BAProblem(poses, problem.fixed, problem.intrinsics, landmarks, obs_kf, obs_lm,

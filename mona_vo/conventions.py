@@ -179,6 +179,14 @@ def reproject(T_world_cam: np.ndarray, points_world: np.ndarray, intr: Intrinsic
     return np.stack([u, v], axis=1), Xc[:, 2]
 
 
+def camera_depths(T_world_cam: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+    """(M,) depth (camera-frame z) of each world point (M, 3) in its own camera (M, 4, 4
+    camera-to-world poses): the third row of ``R^T (p - t)``, without inverting every pose."""
+    T = np.asarray(T_world_cam, np.float64)
+    P = np.asarray(points_world, np.float64)
+    return np.einsum("mj,mj->m", T[:, :3, 2], P - T[:, :3, 3])
+
+
 def pixels_in_mask(mask: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     """(N,) bool: the nearest pixel centre of each (x, y) is True in the (H, W) bool mask;
     pixels outside the image take the nearest border pixel."""

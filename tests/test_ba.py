@@ -249,3 +249,19 @@ def test_second_solve_uses_the_final_kernel_from_the_first_solves_result():
     for res in (one, two):
         t_err, r_err = _errors(res.poses, poses)
         assert t_err < 0.05 and r_err < 0.3
+
+
+def test_second_stage_rule_is_one_for_both_bundle_adjustments():
+    # ba.factors.second_stage: what the first solve cannot explain (above outlier_px, or not
+    # finite) is left out of the second solve, which runs whenever there is such an observation
+    # or the final kernel differs from the first.
+    from ba.factors import second_stage
+
+    usable = np.array([True, True, True, False])
+    r = np.array([0.5, 7.0, np.nan, 9.0])
+    same = BAConfig(robust_kernel="huber", final_kernel="huber", outlier_px=3.0)
+    np.testing.assert_array_equal(second_stage(usable, r, same), [False, True, True, False])
+    assert second_stage(usable, np.array([0.5, 1.0, 2.0, 9.0]), same) is None
+    other = BAConfig(robust_kernel="huber", final_kernel="cauchy", outlier_px=3.0)
+    np.testing.assert_array_equal(second_stage(usable, np.array([0.5, 1.0, 2.0, 9.0]), other),
+                                  [False, False, False, False])

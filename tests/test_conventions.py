@@ -105,3 +105,12 @@ def test_pixels_in_mask_uses_the_nearest_pixel_centre():
     inside = pixels_in_mask(mask, np.array([[2.0, 1.0], [2.4, 1.4], [1.6, 0.6], [2.6, 1.0], [2.0, 1.6],
                                             [-3.0, 1.0], [9.0, 9.0]]))
     assert inside.tolist() == [True, True, True, False, False, False, False]
+
+
+def test_camera_depths_are_reprojects_depths_pose_by_pose():
+    from mona_vo.conventions import camera_depths, reproject
+
+    poses = random_poses(6, seed=3)
+    pts = np.random.default_rng(3).normal(size=(6, 3)) * 4
+    expected = np.array([reproject(T, p[None], Intrinsics(1, 1, 0, 0))[1][0] for T, p in zip(poses, pts)])
+    np.testing.assert_allclose(camera_depths(poses, pts), expected)
