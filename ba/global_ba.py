@@ -5,9 +5,12 @@ sliding window has finished; :func:`refine_global` returns refined poses and poi
 
 Variables: ``X(k)`` the pose T_world_cam of keyframe row k (gtsam.Pose3), ``L(j)`` the world
 position of landmark row j (Point3), and with ``refine_focal`` ``K(0)``, one focal length shared by
-every keyframe (Cal3f; principal points stay as given). Factors: one projection factor per usable
-observation under the sliding window's robust kernel (:func:`ba.factors.robust_pixel_noise`),
-the gauge priors below, and with ``refine_focal`` a weak prior on f.
+every keyframe (Cal3f; principal points stay as given), with ``refine_centre`` as well one shared
+principal point (K(0) a Cal3_S2 with square pixels and zero skew). Factors: one projection factor
+per usable observation under the sliding window's robust kernel
+(:func:`ba.factors.robust_pixel_noise`), the gauge priors below, and with ``refine_focal`` a weak
+prior on f (``focal_prior_ratio``), with ``refine_centre`` one on the principal point
+(``centre_prior_frac`` of the image width about where it started).
 
 Same policies as the sliding window (:mod:`ba.sliding_window_ba`):
 - masks: an observation flagged ``obs_masked`` is not added, and a landmark observed inside a mask
@@ -40,7 +43,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ba.factors import (add_distance_prior, add_focal_variable, add_projection_factors,
-                        levenberg_marquardt, reprojection_errors, robust_pixel_noise)
+                        levenberg_marquardt, reprojection_errors, robust_pixel_noise,
+                        second_stage)
 from ba.sliding_window_ba import BAConfig
 
 log = logging.getLogger(__name__)
@@ -102,6 +106,7 @@ class GlobalResult:
     lm_xyz:      (L, 3) float64 refined landmarks (unchanged where ``lm_valid`` is False).
     lm_valid:    (L,) bool landmark was in the final solve (not masked, not an outlier, enough views).
     focal:       the shared focal length (px) with refine_focal, else None.
+    centre:      the shared principal point (cx, cy) px with refine_centre, else None.
     rmse_px:     reprojection RMSE of the observations in the final solve, px.
     initial_rmse_px: the same observations before refinement, px.
     n_observations_used: observations in the final solve.
@@ -132,6 +137,7 @@ class GlobalResult:
     components: int = 0
     gauge: list[str] = field(default_factory=list)
     iterations: int = 0
+    centre: tuple[float, float] | None = None
 
 
 def _rmse(r: np.ndarray) -> float:
@@ -175,17 +181,32 @@ def _gauge(T: np.ndarray, obs_kf: np.ndarray, lm_row: np.ndarray, n_lm: int, usa
     return held, anchors, len(parts), reasons
 
 
+def _with_centre(intrinsics: np.ndarray, centre) -> np.ndarray:
+    """(M, 4) fx, fy, cx, cy rows with the refined principal point, when there is one."""
+    if centre is None:
+        return intrinsics
+    out = np.array(intrinsics, np.float64)
+    out[:, 2:4] = centre
+    return out
+
+
 def _solve(g: KeyframeGraph, cfg: BAConfig, usable, lm_row, held, anchors, T0, P0,
            refine_focal: bool, focal_start: float | None, max_iterations: int,
-           kernel: str | None = None):
+           kernel: str | None = None, refine_centre: bool = False, centre_start=None):
+    """One Levenberg-Marquardt solve. Returns (T, P, focal, centre, iterations); focal (px) with
+    ``refine_focal``, centre (cx, cy) with ``refine_centre`` as well, else None."""
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     lm_used = np.unique(lm_row[usable])
     kf_used = np.unique(g.obs_kf[usable])
+    refine_centre = refine_centre and refine_focal
     if refine_focal:
         f_guess = float(g.intrinsics[0, 0])
+        cx, cy = float(g.intrinsics[0, 2]), float(g.intrinsics[0, 3])
         add_focal_variable(graph, values, focal_start or f_guess, f_guess,
-                           cfg.focal_prior_ratio * f_guess, g.intrinsics[0, 2], g.intrinsics[0, 3])
+                           cfg.focal_prior_ratio * f_guess, cx, cy,
+                           centre_sigma=cfg.centre_prior_frac * 2 * cx if refine_centre else None,
+                           centre_start=centre_start)
     for k in kf_used:
         values.insert(X(int(k)), gtsam.Pose3(T0[k]))
     # Gauge and scale: see the module docstring. Held keyframes get the same tight prior.
@@ -205,10 +226,11 @@ def _solve(g: KeyframeGraph, cfg: BAConfig, usable, lm_row, held, anchors, T0, P
     cals = [gtsam.Cal3_S2(r[0], r[1], 0.0, r[2], r[3]) for r in cal_rows]
     noise = robust_pixel_noise(cfg.pixel_sigma, kernel or cfg.robust_kernel, cfg.robust_k)
     add_projection_factors(graph, noise, g.obs_uv[sel], g.obs_kf[sel], lm_row[sel],
-                           calibrations=cals, cal_index=cal_index.ravel(), shared_focal=refine_focal)
+                           calibrations=cals, cal_index=cal_index.ravel(), shared_focal=refine_focal,
+                           shared_centre=refine_centre)
     T, P = T0.copy(), P0.copy()
     if not len(sel):
-        return T, P, focal_start, 0
+        return T, P, focal_start, centre_start, 0
     # Landmarks first (Schur complement), then poses and the focal length.
     ordering = [L(int(j)) for j in lm_used] + [X(int(k)) for k in kf_used] + ([K(0)] if refine_focal else [])
     result, iterations = levenberg_marquardt(graph, values, max_iterations, quiet=refine_focal,
@@ -218,12 +240,17 @@ def _solve(g: KeyframeGraph, cfg: BAConfig, usable, lm_row, held, anchors, T0, P
         T[k] = result.atPose3(X(int(k))).matrix()
     for j in lm_used:
         P[j] = result.atPoint3(L(int(j)))
-    focal = float(result.atCal3f(K(0)).fx()) if refine_focal else None
-    return T, P, focal, iterations
+    focal = centre = None
+    if refine_centre:
+        cal = result.atCal3_S2(K(0))
+        focal, centre = float(cal.fx()), (float(cal.px()), float(cal.py()))
+    elif refine_focal:
+        focal = float(result.atCal3f(K(0)).fx())
+    return T, P, focal, centre, iterations
 
 
 def refine_global(graph: KeyframeGraph, config: BAConfig = BAConfig(), *,
-                  refine_focal: bool = False) -> GlobalResult:
+                  refine_focal: bool = False, refine_centre: bool = False) -> GlobalResult:
     """One bundle adjustment over all keyframes and landmarks of ``graph`` (see the module
     docstring). ``refine_focal`` frees one focal length shared by all keyframes, starting from
     keyframe 0's fx. The graph is not modified."""
@@ -251,27 +278,30 @@ def refine_global(graph: KeyframeGraph, config: BAConfig = BAConfig(), *,
     held, anchors, n_parts, reasons = _gauge(T0, obs_kf, lm_row, n_lm, usable)
 
     focal_guess = float(g.intrinsics[0, 0]) if refine_focal and len(g.intrinsics) else None
-    T, P, focal, iterations = _solve(g, config, usable, lm_row, held, anchors, T0, P0,
-                                     refine_focal, focal_guess, config.global_max_iterations)
+    T, P, focal, centre, iterations = _solve(g, config, usable, lm_row, held, anchors, T0, P0,
+                                             refine_focal, focal_guess, config.global_max_iterations,
+                                             refine_centre=refine_centre)
     n_outliers = 0
     if config.resolve_without_outliers and iterations:
-        r = reprojection_errors(T[obs_kf], P[lm_row], intr_obs, g.obs_uv, focal)
-        gross = usable & ~(r <= config.outlier_px)
-        if gross.any() or config.final_kernel != config.robust_kernel:
+        r = reprojection_errors(T[obs_kf], P[lm_row], _with_centre(intr_obs, centre), g.obs_uv, focal)
+        gross = second_stage(usable, r, config)
+        if gross is not None:
             n_outliers = int(gross.sum())
             usable = _constrained(lm_row, usable & ~gross, n_lm, config.min_observations)
             # Removing outliers can leave a keyframe too few points: place the gauge again.
             held, anchors, n_parts, reasons = _gauge(T, obs_kf, lm_row, n_lm, usable)
-            T, P, focal, more = _solve(g, config, usable, lm_row, held, anchors, T, P,
-                                       refine_focal, focal, config.global_max_iterations,
-                                       kernel=config.final_kernel)
+            T, P, focal, centre, more = _solve(g, config, usable, lm_row, held, anchors, T, P,
+                                               refine_focal, focal, config.global_max_iterations,
+                                               kernel=config.final_kernel,
+                                               refine_centre=refine_centre, centre_start=centre)
             iterations += more
-    r = reprojection_errors(T[obs_kf], P[lm_row], intr_obs, g.obs_uv, focal)
+    r = reprojection_errors(T[obs_kf], P[lm_row], _with_centre(intr_obs, centre), g.obs_uv, focal)
     lm_valid = np.zeros(n_lm, bool)
     lm_valid[lm_row[usable]] = True
     P[~lm_valid] = P0[~lm_valid]
     res = GlobalResult(
-        T_world_cam=T, lm_xyz=P, lm_valid=lm_valid, focal=focal, rmse_px=_rmse(r[usable]),
+        T_world_cam=T, lm_xyz=P, lm_valid=lm_valid, focal=focal, centre=centre,
+        rmse_px=_rmse(r[usable]),
         n_observations_used=int(usable.sum()), masked_observations=int(masked_obs.sum()),
         masked_landmarks=int(masked_lm.sum()), seconds=time.perf_counter() - t0,
         initial_rmse_px=_rmse(r0[usable]), outlier_observations=n_outliers, obs_used=usable,

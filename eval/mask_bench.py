@@ -229,7 +229,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--calib", choices=("guess", "estimate"), default="guess",
                         help="DAVIS: the masker's camera, the 60-degree guess (as `mona-vo masks`) "
                              "or the focal length `mona-vo run` estimates (default guess)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one pipeline config value, e.g. --set "
+                             "masks.evidence.decay=0.7 (repeatable; as `mona-vo masks --set`)")
     args = parser.parse_args(argv)
+    from mona_vo.config import load_config, parse_set_options
+    from mona_vo.pipeline import PipelineConfig
+
+    config = load_config(PipelineConfig, None, parse_set_options(args.set)).masks
     parts = set(args.parts.split(","))
     seeds: list[int] = []
     for item in (x.strip() for x in args.seeds.split(",") if x.strip()):
@@ -238,16 +245,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     w, h = (int(v) for v in args.size.split("x"))
     if "speed" in parts:
         print("== speed (ms per frame per stage) ==")
-        print(format_table(speed_rows()), flush=True)
+        print(format_table(speed_rows(config=config)), flush=True)
     if "davis" in parts and (SHARED_DATA / "davis2016").is_dir():
-        rows = davis_rows(modes=tuple(args.modes.split(",")), calib=args.calib)
+        rows = davis_rows(modes=tuple(args.modes.split(",")), config=config, calib=args.calib)
         print("\n== DAVIS-2016 (J, F) per sequence and prompt mode ==")
         print(format_table(rows))
         print("\n== DAVIS-2016 means: tuning part, validation part, all ==")
         print(format_table(split_means(rows)), flush=True)
     if "synthetic" in parts:
         rows = synthetic_rows(presets=tuple(args.presets.split(",")), seeds=seeds,
-                              n_frames=args.frames, width=w, height=h)
+                              n_frames=args.frames, width=w, height=h, config=config)
         print("\n== synthetic scenes, per seed ==")
         print(format_table(rows))
         print("\n== synthetic scenes, per preset (J = mean IoU; static: fp_area) ==")

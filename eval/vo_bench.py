@@ -73,6 +73,7 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     return {
         "variant": variant, **errors, "calib": calib,
         "focal_error_pct": 100.0 * (result.intrinsics.fx - true_fx) / true_fx,
+        "final_focal_error_pct": 100.0 * (result.vo.focal - true_fx) / true_fx,
         "frames": n, "frames_with_pose": int(np.isfinite(result.vo.poses).all(axis=(1, 2)).sum()),
         "low_confidence": int(result.vo.low_confidence.sum()),
         "keyframes": int(result.vo.is_keyframe.sum()),
@@ -161,7 +162,8 @@ def format_row(r: dict) -> str:
             f"ATE {r['ate']:.4f} m {r['ate_pct']:7.3f}% of {r['path_m']:5.2f} m  "
             f"RPE {r['rpe_trans']:.4f} m {r['rpe_rot_deg']:.3f} deg  VO {r['vo_fps']:5.1f} fps  "
             f"masks {r['mask_ms_per_frame']:5.1f} ms/frame  low-conf {r['low_confidence']}"
-            + (f"  focal {r['focal_error_pct']:+.1f}%" if r.get("calib") == "estimate" else "")
+            + (f"  focal {r['focal_error_pct']:+.1f}% -> {r['final_focal_error_pct']:+.1f}%"
+               if r.get("calib") == "estimate" else "")
             + (f"  rot {r['rot_rmse_deg']:.3f} deg, est. translation {r['est_translation_extent']:.3g}"
                if np.isfinite(r["rot_rmse_deg"]) else "")
             + ("" if r["status"] == "ok" else f"  {r['status']}"))

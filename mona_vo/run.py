@@ -134,7 +134,10 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "calibration": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
                         "source": "given" if calib_given else
                                   _camera_source(_focal_estimated(result), config),
+                        # fx above is the start; without --calib the global refinement
+                        # frees the focal length over the whole clip, and this is the one used.
                         "focal_used": vo.focal,
+                        "focal_refined": "focal_px" in (getattr(vo, "refine", None) or {}),
                         "focal_estimate": _focal_evidence(result)},
         "seconds": per_stage,
         "frames_per_second": {k: round(v, 2) for k, v in fps.items() if v is not None},
