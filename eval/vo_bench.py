@@ -174,7 +174,7 @@ def format_summary(summary: list[dict], baseline: str = "none") -> str:
     difference to the baseline variant +- its standard deviation, the run-to-run spread."""
     lines = [f"{'preset':13s} {'variant':7s} {'n':>2s} {'ATE% mean+-sd':>15s} {'[min, max]':>17s} "
              f"{'vs ' + baseline + ' +-sd':>17s} {'rerun':>6s} {'RPE m':>7s} {'RPE deg':>7s} "
-             f"{'VO fps':>7s} {'mask ms':>7s}"]
+             f"{'VO fps':>7s} {'mask ms':>7s} {'failed':>6s}"]
     for s in summary:
         d = ("-" if s["variant"] == baseline or s["d_vs_baseline_mean"] != s["d_vs_baseline_mean"]
              else f"{s['d_vs_baseline_mean']:+.3f}+-{s['d_vs_baseline_std']:.3f}")
@@ -182,10 +182,12 @@ def format_summary(summary: list[dict], baseline: str = "none") -> str:
                      f"{s['ate_pct_mean']:7.3f}+-{s['ate_pct_std']:6.3f} "
                      f"[{s['ate_pct_min']:6.3f}, {s['ate_pct_max']:7.3f}] {d:>17s} "
                      f"{s['repeat_spread_pct']:6.3f} {s['rpe_trans_mean']:7.4f} {s['rpe_rot_mean']:7.3f} "
-                     f"{s['vo_fps_mean']:7.1f} {s['mask_ms_mean']:7.1f}")
+                     f"{s['vo_fps_mean']:7.1f} {s['mask_ms_mean']:7.1f} {s['n'] - s['scored']:6d}")
     lines.append("ATE% over seeds: mean +- standard deviation [min, max]; 'vs' is the paired difference "
                  "to the same seeds' baseline; 'rerun' the largest spread of one input over --repeats. "
-                 "A difference within its +-sd is no difference.")
+                 "A difference within its +-sd is no difference. 'failed': sequences that could not be "
+                 "scored (left out of the means; e.g. a rotation-only estimate of a camera that "
+                 "translates, which no Sim(3) alignment can score).")
     return "\n".join(lines)
 
 

@@ -230,7 +230,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
         if vo is None:
             first_intr = intr or camera_without_calib(calibration, config, *size)
             vo = VisualOdometry(config.vo, size[0], size[1], first_intr,
-                                tracker=config.build_tracker())
+                                tracker=config.build_tracker(), camera_known=intr is not None)
         if on_frame is not None:
             on_frame(FrameOutput(frame.index, frame.name, frame.timestamp, frame.image, mask, mona))
         vo.step(frame.image, timestamp=frame.timestamp, mask=vo_mask, intrinsics=intr)

@@ -232,3 +232,39 @@ class ParallaxEvidence:
                 "translation_ratio": translation_ratio,
                 "conclusion": "translation" if self.ratio >= translation_ratio else "rotation-only",
                 "map_built": bool(map_built)}
+
+
+def patch_similarity(gray_a: np.ndarray, uv_a: np.ndarray, gray_b: np.ndarray, uv_b: np.ndarray,
+                     half: int, H_b_a: np.ndarray | None = None) -> np.ndarray:
+    """(N,) normalised cross-correlation of the (2 half + 1)^2 patches around uv_b in gray_b
+    and around uv_a in gray_a (sub-pixel, bilinear); NaN where a patch is flat. Invariant to
+    gain and offset, so exposure changes do not lower it. ``H_b_a`` (3, 3; pixels of a ->
+    pixels of b, e.g. the rotation's K_b R K_a^-1): patch a is sampled through its local affine
+    map, so a camera that turned or rolled between the two images does not lower it."""
+    size = (2 * half + 1, 2 * half + 1)
+    a = np.asarray(gray_a, np.float32)
+    b = np.asarray(gray_b, np.float32)
+    out = np.full(len(uv_a), np.nan)
+    c = np.array([half, half], np.float64)
+    for i, (p, q) in enumerate(zip(np.asarray(uv_a, np.float64), np.asarray(uv_b, np.float64))):
+        pb = cv2.getRectSubPix(b, size, (float(q[0]), float(q[1]))).ravel()
+        if H_b_a is None:
+            pa = cv2.getRectSubPix(a, size, (float(p[0]), float(p[1]))).ravel()
+        else:
+            # Local affine map of H at p (image a -> b); patch pixel u of b's patch comes from
+            # p + A^-1 (u - c) in a.
+            h = H_b_a @ np.array([p[0], p[1], 1.0])
+            J = (H_b_a[:2, :2] * h[2] - np.outer(h[:2], H_b_a[2, :2])) / h[2] ** 2
+            try:
+                Ainv = np.linalg.inv(J)
+            except np.linalg.LinAlgError:
+                continue
+            M = np.hstack([Ainv, (p - Ainv @ c)[:, None]])
+            pa = cv2.warpAffine(a, M, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                borderMode=cv2.BORDER_REPLICATE).ravel()
+        pa = pa - pa.mean()
+        pb = pb - pb.mean()
+        den = float(np.sqrt((pa @ pa) * (pb @ pb)))
+        if den > 1e-6:
+            out[i] = float(pa @ pb) / den
+    return out

@@ -174,7 +174,7 @@ def test_without_intrinsics_the_global_refinement_corrects_a_wrong_focal_length(
     gt = Trajectory(t, scene.poses())
 
     def run(given=None, **cfg):
-        vo = VisualOdometry(VOConfig(**cfg), 640, 272, wrong)
+        vo = VisualOdometry(VOConfig(**cfg), 640, 272, wrong, camera_known=False)
         for i, r in enumerate(rendered):
             vo.step(r.image, timestamp=float(i), mask=r.mask, intrinsics=given)
         res = vo.finish()
@@ -187,3 +187,45 @@ def test_without_intrinsics_the_global_refinement_corrects_a_wrong_focal_length(
     assert ate_freed < 0.7 * ate_held, (ate_freed, ate_held)
     given, _ = run(given=wrong, global_camera="focal")
     assert given.focal == pytest.approx(wrong.fx)
+
+
+def test_tracks_sliding_along_depth_edges_are_dropped_and_the_trajectory_gains(monkeypatch):
+    # A generated slow pan (mixed seed 207, a seed outside the validation seeds 100-111): corners
+    # where a near edge crosses the far background track well but are no points of the scene.
+    # The keyframe dissimilarity check drops them -- several times more often than the other
+    # tracks, measured against the true depth edges -- and the ATE falls (measured 1.05 -> 0.67 %).
+    from eval.metrics import Trajectory, evaluate_trajectory
+
+    scene = SyntheticScene(SceneConfig(width=640, height=272, n_frames=40, preset="mixed", seed=207))
+    rendered = list(scene)
+    t = np.arange(len(rendered), dtype=float)
+    gt = Trajectory(t, scene.poses())
+
+    def depth_edges(r, radius=3):
+        d = np.log(np.maximum(r.depth, 1e-3)).astype(np.float32)
+        g = np.hypot(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(d, cv2.CV_32F, 0, 1, ksize=3))
+        k = 2 * radius + 1
+        return cv2.dilate((g > 0.2).astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+
+    near_edge = {"dropped": [], "kept": []}
+    original = VisualOdometry._drop_dissimilar
+
+    def spy(self, gray, obs, T, intr):
+        out = original(self, gray, obs, T, intr)
+        edges = depth_edges(rendered[self.map.frames.n - 1])
+        gone = ~np.isin(obs.ids, out.ids)
+        xy = np.clip(np.rint(obs.uv).astype(int), 0, [edges.shape[1] - 1, edges.shape[0] - 1])
+        on = edges[xy[:, 1], xy[:, 0]]
+        near_edge["dropped"] += on[gone].tolist()
+        near_edge["kept"] += on[~gone].tolist()
+        return out
+
+    monkeypatch.setattr(VisualOdometry, "_drop_dissimilar", spy)
+    _, res = _run(scene, [r.image for r in rendered], [r.mask for r in rendered])
+    assert res.drops["tracks_dissimilar"] > 0
+    assert np.mean(near_edge["dropped"]) > 2 * np.mean(near_edge["kept"]), near_edge
+    ate = evaluate_trajectory(gt, Trajectory(t, res.poses)).ate_percent_of_path
+    monkeypatch.setattr(VisualOdometry, "_drop_dissimilar", original)
+    _, off = _run(scene, [r.image for r in rendered], [r.mask for r in rendered], patch_dissimilarity=0.0)
+    ate_off = evaluate_trajectory(gt, Trajectory(t, off.poses)).ate_percent_of_path
+    assert ate < 0.8 * ate_off, (ate, ate_off)

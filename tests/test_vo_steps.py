@@ -173,3 +173,38 @@ def test_typical_speed_is_the_median_step_per_frame_of_the_last_keyframes():
     # Only the last `recent` steps count: the last two alone are the collapse.
     assert typical_speed(frames, positions, recent=2) == pytest.approx(1e-4)
     assert typical_speed(frames[:1], positions[:1], recent=20) is None
+
+
+def test_patch_similarity_sees_through_a_rotation_but_not_a_sliding_background():
+    import cv2
+
+    from mona_vo.vo_steps import patch_similarity
+
+    rng = np.random.default_rng(0)
+
+    def texture(seed):
+        r = np.random.default_rng(seed)
+        return cv2.GaussianBlur(r.uniform(0, 255, (240, 240)).astype(np.float32), (0, 0), 2.0)
+
+    a = texture(1)
+    # The camera rolled 12 degrees about the centre and the exposure doubled: a point of the
+    # scene looks the same once the keyframe's patch is warped by the rotation.
+    M = cv2.getRotationMatrix2D((120.0, 120.0), 12.0, 1.0)
+    H = np.vstack([M, [0.0, 0.0, 1.0]])
+    b = 2.0 * cv2.warpAffine(a, M, (240, 240)) + 10.0
+    p = rng.uniform(60, 180, (30, 2))
+    q = (np.c_[p, np.ones(len(p))] @ H.T)[:, :2]
+    warped = patch_similarity(a, p, b, q, 4, H)
+    plain = patch_similarity(a, p, b, q, 4)
+    assert warped.min() > 0.99 and np.median(plain) < np.median(warped) - 0.01
+    # A T-junction: a near surface (right half) over a far one that slides 3 px behind it.
+    near, far = texture(2), texture(3)
+    edge = np.zeros((240, 240), bool)
+    edge[:, 120:] = True
+    before = np.where(edge, near, far)
+    after = np.where(edge, near, np.roll(far, 3, axis=1))
+    junction = patch_similarity(before, np.array([[120.0, 120.0]]), after,
+                                np.array([[120.0, 120.0]]), 4)
+    surface = patch_similarity(before, np.array([[150.0, 120.0]]), after,
+                               np.array([[150.0, 120.0]]), 4)
+    assert junction[0] < 0.9 < surface[0]
