@@ -63,6 +63,10 @@ class FocalConfig:
                                             # range) times reconstruction RMSE / its RMSE (at most
                                             # 1) reaches this. Tuning seeds: pans 16-70, footage
                                             # that translates 0.03-2.6
+    second_pass_change: float = setting(0.05, gt=0)  # when the global refinement moves the
+                                            # focal length by more than this share, the VO runs
+                                            # again over the frames with the refined camera
+                                            # (frames that can be read twice only)
     held_iterations: int = setting(5, ge=1)   # LM iterations of a held-focal solve (evidence)
     freed_iterations: int = setting(30, ge=1)  # LM iterations of a freed-focal solve
 

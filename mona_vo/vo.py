@@ -29,6 +29,7 @@ and a status.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -714,8 +715,16 @@ class VisualOdometry:
         # takes it (generated creep from a focal 28 % too long: +2.8 % after, 0.57 -> 0.24 % of
         # path). Where the clip does not constrain it, the prior keeps the start value.
         free = self.cfg.global_camera != "none" and not self._intrinsics_given
-        res = refine_global(graph, self.cfg.ba, refine_focal=free,
-                            refine_centre=self.cfg.global_camera == "focal+centre")
+        res = refine_global(graph, self.cfg.ba, refine_focal=free)
+        if free and self.cfg.global_camera == "focal+centre" and res.focal is not None:
+            # The principal point from the focal-only solution: freed together from the start,
+            # the two trade off and the focal length stays where it began.
+            intr = np.array(graph.intrinsics, np.float64)
+            intr[:, :2] = res.focal
+            valid = np.asarray(res.lm_valid, bool)
+            graph = dataclasses.replace(graph, T_world_cam=res.T_world_cam, intrinsics=intr,
+                                        lm_xyz=np.where(valid[:, None], res.lm_xyz, graph.lm_xyz))
+            res = refine_global(graph, self.cfg.ba, refine_focal=True, refine_centre=True)
         kf, lm = self.map.keyframes, self.map.landmarks
         focal = {}
         if free and res.focal is not None and np.isfinite(res.focal):
