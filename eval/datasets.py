@@ -61,14 +61,15 @@ TUM_MAX_DIFF = 0.02
 
 
 def tum_sequences(roots: list[str | Path], *, calib: Intrinsics | None = None,
-                  max_diff: float = TUM_MAX_DIFF) -> list[EvalSequence]:
+                  max_diff: float = TUM_MAX_DIFF, folder_calib: bool = True) -> list[EvalSequence]:
     """Folders in TUM RGB-D layout (rgb.txt, rgb/, groundtruth.txt, optional calib.txt). Poses
     are stamped with rgb.txt's timestamps and associated with the GT by evo's nearest-timestamp
-    rule within ``max_diff`` seconds (default :data:`TUM_MAX_DIFF`)."""
+    rule within ``max_diff`` seconds (default :data:`TUM_MAX_DIFF`). ``folder_calib=False``
+    ignores calib.txt (the run estimates the camera, as for an online video)."""
     out = []
     for root in roots:
         seq = TumSequence(root)
-        intr = calib or seq.intrinsics()
+        intr = calib or (seq.intrinsics() if folder_calib else None)
         ts, poses = seq.groundtruth()
         out.append(EvalSequence(name=Path(root).resolve().name, frames=seq.frames,
                                 n_frames=len(seq.timestamps), intrinsics=intr,

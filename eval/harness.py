@@ -49,7 +49,7 @@ MIN_MATCHED_FRACTION = 0.9   # fewer posed frames matched to GT than this: a war
 COLUMNS = ("sequence", "variant", "status", "ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path",
            "rot_rmse_deg", "rot_max_deg", "est_translation_extent",
            "frames", "frames_with_pose", "low_confidence", "n_matched", "scale", "seconds",
-           "frames_per_second", "warning")
+           "frames_per_second", "camera", "focal_px", "warning")
 
 
 @dataclass
@@ -119,7 +119,8 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
         with sigint_deferred():
             write_tum_trajectory(run_dir / "trajectory.txt", vo.timestamps[posed], vo.poses[posed])
         row.update(frames=len(vo.timestamps), frames_with_pose=int(posed.sum()),
-                   low_confidence=int(vo.low_confidence.sum()))
+                   low_confidence=int(vo.low_confidence.sum()), focal_px=float(vo.focal),
+                   camera="given" if seq.intrinsics is not None else "estimated")
         est = Trajectory(vo.timestamps[posed], vo.poses[posed])
         m = score_trajectory(seq.gt, est, max_diff=seq.max_diff)
         if isinstance(m, RotationMetrics):

@@ -193,6 +193,9 @@ def build_parser() -> argparse.ArgumentParser:
     et.add_argument("--align", choices=["sim3", "se3", "none"], default="sim3",
                     help="alignment before the errors: sim3 for monocular (default), se3 for metric estimates")
     et.add_argument("--max-diff", type=float, default=0.01, help="timestamp association tolerance, seconds (tum)")
+    et.add_argument("--frames", metavar="A:B",
+                    help="score only the estimate's poses A to B-1 (rows of the file, from 0), "
+                         "aligned alone: e.g. a tuning and a validation part of one run")
     et.set_defaults(func=_cmd_eval_traj)
     em = _sub(esub, "masks", help="DAVIS region J and boundary F of predicted masks, printed as JSON")
     em.add_argument("--pred", required=True, help="folder of predicted mask PNGs")
@@ -221,7 +224,9 @@ def build_parser() -> argparse.ArgumentParser:
     eu.add_argument("--root", required=True, action="append",
                     help="a folder with rgb.txt, rgb/ and groundtruth.txt (repeatable)")
     eu.add_argument("--variants", default="none,mona", help="comma-separated: none, mona, mona-points, mona-raw-boxes")
-    eu.add_argument("--calib", metavar="fx,fy,cx,cy|FILE", help="intrinsics (default: the folder's calib.txt, else a guess)")
+    eu.add_argument("--calib", metavar="fx,fy,cx,cy|FILE|estimate",
+                    help="intrinsics (default: the folder's calib.txt, else estimated as `run` "
+                         "does); estimate: ignore calib.txt and estimate, as for an online video")
     eu.add_argument("--out", required=True, metavar="DIR", help="output folder")
     eu.add_argument("--workers", type=int, default=1, help="runs in parallel (processes)")
     eu.add_argument("--max-diff", type=float, default=None, metavar="SECONDS",
@@ -422,6 +427,23 @@ def _machine() -> str:
     return f"{cores} cores, {platform.machine()}, {platform.python_implementation()} {platform.python_version()}"
 
 
+def _frame_range(text: str | None, n: int) -> slice:
+    """``--frames A:B`` -> slice(A, B) within n rows; an empty or malformed range is a
+    ConfigError naming the option."""
+    if text is None:
+        return slice(0, n)
+    a, sep, b = text.partition(":")
+    try:
+        lo = int(a) if a.strip() else 0
+        hi = int(b) if b.strip() else n
+    except ValueError:
+        lo = hi = -1
+    if not sep or lo < 0 or hi > n or hi - lo < 3:
+        raise ConfigError(f"--frames expects A:B with 0 <= A, B <= {n} (the estimate's rows) and "
+                          f"at least 3 poses, got '{text}'")
+    return slice(lo, hi)
+
+
 def _cmd_eval_traj(args) -> int:
     from eval.metrics import Trajectory, evaluate_trajectory
 
@@ -429,13 +451,20 @@ def _cmd_eval_traj(args) -> int:
         from data_tools.tum import read_tum_trajectory
 
         gt = Trajectory(*read_tum_trajectory(args.gt))
-        est = Trajectory(*read_tum_trajectory(args.est))
+        t, T = read_tum_trajectory(args.est)
+        part = _frame_range(args.frames, len(t))
+        est = Trajectory(t[part], T[part])
         m = evaluate_trajectory(gt, est, align=args.align, max_diff=args.max_diff)
     else:
         from data_tools.kitti import read_kitti_poses
 
-        gt = Trajectory.from_poses(read_kitti_poses(args.gt))
-        est = Trajectory.from_poses(read_kitti_poses(args.est))
+        gt_poses, est_poses = read_kitti_poses(args.gt), read_kitti_poses(args.est)
+        part = _frame_range(args.frames, len(est_poses))
+        if args.frames is not None and len(gt_poses) != len(est_poses):
+            raise ConfigError("--frames with --format kitti needs files of equal length (poses are "
+                              "matched by line)")
+        gt = Trajectory.from_poses(gt_poses[part])
+        est = Trajectory.from_poses(est_poses[part])
         m = evaluate_trajectory(gt, est, align=args.align, associate=False)
     d = m.to_dict()
     print(json.dumps({k: d[k] for k in ("ate", "rpe_trans", "rpe_rot_deg", "n_matched", "scale",
@@ -515,14 +544,17 @@ def _cmd_eval_tum(args) -> int:
     variants = parse_variants(args.variants)
     if "gt" in variants:
         raise ConfigError("TUM-layout folders carry no moving-object masks: variant 'gt' is not available")
-    calib = parse_calibration(args.calib) if args.calib else None
+    estimate = args.calib == "estimate"
+    calib = parse_calibration(args.calib) if args.calib and not estimate else None
     max_diff = TUM_MAX_DIFF if args.max_diff is None else args.max_diff
     if not (math.isfinite(max_diff) and max_diff > 0):
         raise ConfigError(f"--max-diff must be a positive number of seconds, got {args.max_diff!r}")
-    seqs = tum_sequences(args.root, calib=calib, max_diff=max_diff)
-    # The tolerance changes the metrics of finished runs, so it is part of what a run is.
+    seqs = tum_sequences(args.root, calib=calib, max_diff=max_diff, folder_calib=not estimate)
+    # The tolerance and the camera change the results of finished runs, so they are part of
+    # what a run is.
     rows = evaluate(seqs, variants, args.out, config=config, workers=args.workers, address=args.address,
-                    extra_hash={"dataset": "tum", "max_diff": max_diff}, progress=not args.quiet)
+                    extra_hash={"dataset": "tum", "max_diff": max_diff, "calib": args.calib or ""},
+                    progress=not args.quiet)
     _print_summary(rows)
     print(f"wrote {args.out}/results.md")
     return 0 if all(r.get("status") == "ok" for r in rows) else 1

@@ -78,6 +78,16 @@ def test_eval_traj_prints_the_metrics_of_the_library(mona_vo_exe, small_scene, t
                                    Trajectory(*read_tum_trajectory(out / "trajectory.txt")), align=align)
         assert got["ate"] == pytest.approx(want.ate, abs=1e-12)
         assert got["n_matched"] == len(scene)
+    # --frames A:B scores one part of the run, aligned alone.
+    got = json.loads(cli(mona_vo_exe, "eval", "traj", "--gt", folder / "groundtruth.txt",
+                         "--est", out / "trajectory.txt", "--frames", "2:9").stdout)
+    t, T = read_tum_trajectory(out / "trajectory.txt")
+    want = evaluate_trajectory(Trajectory(*read_tum_trajectory(folder / "groundtruth.txt")),
+                               Trajectory(t[2:9], T[2:9]))
+    assert got["n_matched"] == 7 and got["ate"] == pytest.approx(want.ate, abs=1e-12)
+    bad = cli(mona_vo_exe, "eval", "traj", "--gt", folder / "groundtruth.txt", "--est",
+              out / "trajectory.txt", "--frames", "5:6", ok=False)
+    assert bad.returncode != 0 and "--frames" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_eval_traj_kitti_format(mona_vo_exe, shared_subdir):

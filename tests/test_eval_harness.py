@@ -101,6 +101,23 @@ def test_eval_tum_on_a_generated_tum_folder_with_exact_gt(mona_vo_exe, tmp_path)
     assert float(row["ate_percent_of_path"]) < 5.0
 
 
+def test_eval_tum_can_ignore_the_folders_calibration_and_estimate_the_camera(mona_vo_exe, tmp_path):
+    # `--calib estimate` runs the sequence as an online video: calib.txt is not read, the camera
+    # is estimated, and each row says which camera it ran with and the focal length used.
+    scene = SyntheticScene(SceneConfig(width=384, height=164, n_frames=16, preset="static", seed=2))
+    stamps = 1311868164.0 + np.arange(len(scene)) / 30.0
+    root = tmp_path / "tum_seq"
+    write_tum_layout(root, stamps, (f.image for f in scene), scene.poses(), scene.intrinsics)
+    for calib, out in ((None, tmp_path / "given"), ("estimate", tmp_path / "est")):
+        args = ["eval", "tum", "--root", root, "--variants", "none", "--out", out]
+        proc = cli(mona_vo_exe, *(args + (["--calib", calib] if calib else [])))
+        assert proc.returncode == 0, proc.stderr
+    given, est = _rows(tmp_path / "given")[0], _rows(tmp_path / "est")[0]
+    assert given["camera"] == "given" and est["camera"] == "estimated"
+    assert float(given["focal_px"]) == pytest.approx(scene.intrinsics.fx)
+    assert float(est["focal_px"]) != pytest.approx(scene.intrinsics.fx)
+
+
 def test_eval_tum_associates_within_20_ms_and_warns_when_frames_go_unmatched(mona_vo_exe, tmp_path):
     # The GT clock runs 15 ms behind the camera's on frames 6-11 (Bonn's streams drift this way):
     # the TUM tolerance (20 ms) still matches every frame; evo's 10 ms drops those six, and the
