@@ -22,12 +22,13 @@ def _gt_masks(folder, names):
 def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
     # Measured (one-large seed 0, 384 x 164, 24 frames; a car covers 28 % of the view), ATE % of
     # path without masks / with MONA / with the true masks:
-    # - streaming VO (vo.refine=none): 0.55 / 0.19 / -; the bound asks for most of that gain:
+    # - streaming VO (vo.refine=none): 0.58 / 0.21 / 0.21; the bound asks for most of that gain:
     #   masks that miss the car, or mask static ground that the VO then loses, fail it;
-    # - the default (global refinement, tracked frames posed again on the refined map):
-    #   0.164 / 0.156 / 0.156. Re-posing on the refined map repairs most of what the car did to
-    #   the frames between keyframes, so here the masks must be as good as the true ones and no
-    #   worse than none.
+    # - the default (global refinement, tracked frames posed again on the refined map, keyframe
+    #   dissimilarity check): 0.151 / 0.153 / 0.183 (before the dissimilarity check 0.164 /
+    #   0.156 / 0.156). The default VO now copes with this car by itself -- even the true masks
+    #   do not lower its error -- so here the masks must not be clearly worse than none (5 %)
+    #   nor than the true masks (10 %).
     folder, scene = small_scene
     t = np.arange(len(scene), dtype=float)
     gt = Trajectory(t, scene.poses())
@@ -41,7 +42,7 @@ def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
 
     assert ate("mona", **{"vo.refine": "none"}) < 0.6 * ate(None, **{"vo.refine": "none"})
     mona, none, true = ate("mona"), ate(None), ate(true_masks)
-    assert mona <= none and mona <= 1.1 * true, (mona, none, true)
+    assert mona <= 1.05 * none and mona <= 1.1 * true, (mona, none, true)
 
 
 def test_a_movers_mask_is_stable_from_frame_to_frame(small_scene):
