@@ -765,8 +765,26 @@ def copy_of(result: Path, tmp_path: Path) -> Path:
     return out
 
 
+@pytest.fixture
+def ctrl_c_delivered():
+    """Ctrl-C as a terminal delivers it: SIGINT unblocked and handled by Python's default
+    handler in this process, so that a child inherits neither a blocked nor an ignored SIGINT.
+    Once, on CI, both Ctrl-C tests failed after the full suite because this process's SIGINT was
+    left blocked or ignored by an earlier test (the child ran to its end, the in-process signal
+    never arrived); alone, and after the same files in a second full run, they passed."""
+    blocked = signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+    if signal.SIGINT in blocked or handler is not signal.default_int_handler:
+        print(f"note: SIGINT was {'blocked' if signal.SIGINT in blocked else 'not blocked'} and "
+              f"handled by {handler!r} before this test")
+    yield
+    signal.signal(signal.SIGINT, handler if handler is not None else signal.SIG_DFL)
+    if signal.SIGINT in blocked:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+
+
 def test_ctrl_c_midway_leaves_the_previous_complete_result(mona_vo_exe, street_folder, complete_result,
-                                                          tmp_path):
+                                                          tmp_path, ctrl_c_delivered):
     out = copy_of(complete_result, tmp_path)
     calib = ["--calib", street_folder / "calib.txt"]
     before = snapshot(out)
@@ -800,7 +818,8 @@ def test_ctrl_c_midway_leaves_the_previous_complete_result(mona_vo_exe, street_f
     assert hidden(out) == []
 
 
-def test_ctrl_c_during_commit_is_held_until_the_result_is_complete(tmp_path, monkeypatch):
+def test_ctrl_c_during_commit_is_held_until_the_result_is_complete(tmp_path, monkeypatch,
+                                                                   ctrl_c_delivered):
     """A Ctrl-C that lands between the renames of a commit is delivered after report.json."""
     import data_tools.run_outputs as ro
 
