@@ -208,11 +208,17 @@ def _second_pass(source: Iterable, first: VOResult, vo_masks: list, size, start:
     vo = VisualOdometry(config.vo, size[0], size[1], camera, tracker=config.build_tracker(),
                         camera_known=False)
     n = 0
-    for frame, packed in zip(source, vo_masks):
-        mask = None if packed is None else \
-            np.unpackbits(packed, count=size[0] * size[1]).reshape(size[1], size[0]).astype(bool)
-        vo.step(frame.image, timestamp=frame.timestamp, mask=mask)
-        n += 1
+    try:
+        for frame, packed in zip(source, vo_masks):
+            mask = None if packed is None else \
+                np.unpackbits(packed, count=size[0] * size[1]).reshape(size[1], size[0]).astype(bool)
+            vo.step(frame.image, timestamp=frame.timestamp, mask=mask)
+            n += 1
+    except InputError as exc:
+        # The first pass is a complete result: a frame that cannot be read again must not lose it.
+        refine["second_pass"] = f"no: reading the frames again failed ({exc})"
+        first.refine = refine
+        return first
     if n != len(vo_masks):
         refine["second_pass"] = f"no: the frames came back {n} instead of {len(vo_masks)}"
         first.refine = refine

@@ -230,7 +230,7 @@ class VisualOdometry:
         self._attempt: _Attempt | None = None
         self._probe: _Probe | None = None
         self._focal_fixed: float | None = None
-        self._intrinsics_given = intrinsics is not None if camera_known is None else bool(camera_known)
+        self._camera_known = intrinsics is not None if camera_known is None else bool(camera_known)
         self._last_kf_view = None   # (gray, track ids, uv, T_world_cam, intrinsics) of the
                                     # last keyframe made while tracking (_drop_dissimilar)
         self._speed_hint: float | None = None       # map units/frame before a re-initialisation
@@ -245,7 +245,7 @@ class VisualOdometry:
         """Process the next frame. image: (H, W, 3) uint8 RGB or (H, W) grey. mask: optional
         (H, W) bool moving-object mask. intrinsics: this frame's (defaults to the constructor's)."""
         t = self.map.frames.n
-        self._intrinsics_given |= intrinsics is not None
+        self._camera_known |= intrinsics is not None
         intr = intrinsics or self.default_intr
         if self._focal_fixed is not None and intrinsics is None:
             intr = Intrinsics(self._focal_fixed, self._focal_fixed, intr.cx, intr.cy)
@@ -714,7 +714,7 @@ class VisualOdometry:
         # freed here (one shared Cal3f, its weak prior at the start value) and every keyframe
         # takes it (generated creep from a focal 28 % too long: +2.8 % after, 0.57 -> 0.24 % of
         # path). Where the clip does not constrain it, the prior keeps the start value.
-        free = self.cfg.global_camera != "none" and not self._intrinsics_given
+        free = self.cfg.global_camera != "none" and not self._camera_known
         res = refine_global(graph, self.cfg.ba, refine_focal=free)
         if free and self.cfg.global_camera == "focal+centre" and res.focal is not None:
             # The principal point from the focal-only solution: freed together from the start,

@@ -174,3 +174,30 @@ def test_without_intrinsics_the_vo_runs_again_from_the_refined_focal_length():
         return evaluate_trajectory(gt, Trajectory(r.vo.timestamps, r.vo.poses)).ate_percent_of_path
 
     assert ate(twice) < 0.2, ate(twice)
+
+
+def test_a_second_pass_that_cannot_read_the_frames_again_keeps_the_first_pass():
+    # Finished work is never lost: the first pass is a complete result, so a frame that fails on
+    # the second read leaves it in place, and the report says why.
+    from eval.vo_bench import render_sequence
+    from mona_vo.errors import InputError
+    from mona_vo.pipeline import PipelineConfig, estimate_trajectory
+
+    scene, frames, masks = render_sequence("creep", 0, 40, 640, 272)
+
+    class Once:
+        """Frames that can be iterated twice, the second time failing half-way."""
+
+        def __init__(self):
+            self.reads = 0
+
+        def __iter__(self):
+            self.reads += 1
+            for i, f in enumerate(frames):
+                if self.reads > 1 and i == 20:
+                    raise InputError("frame 00020: cannot be read")
+                yield f
+
+    result = estimate_trajectory(Once(), masks=list(masks), config=PipelineConfig())
+    assert result.vo.refine["second_pass"].startswith("no: reading the frames again failed")
+    assert np.isfinite(result.vo.poses).all() and len(result.vo.poses) == len(frames)
