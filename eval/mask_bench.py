@@ -106,14 +106,15 @@ def davis_rows(root: str | Path | None = None,
                sequences: Sequence[str] = DAVIS_TUNE + DAVIS_VALIDATE,
                modes: Sequence[str] = ("boxes",),
                config: MaskConfig | None = None, max_frames: int | None = None,
-               calib: str = "guess") -> list[dict]:
+               calib: str = "guess", pipeline=None) -> list[dict]:
     """One row per (sequence, prompt mode): J and F means over all frames, the sequence's
     split ('tune' or 'validate', by the board's DAVIS split) and the mean seconds per frame.
     ``root``: one DAVIS folder holding every sequence; None looks each one up in the shared
     data (:func:`davis_root_of`). ``calib``: ``guess`` gives the masker the 60-degree
     field-of-view guess (as `mona-vo masks`); ``estimate`` the focal length that `mona-vo run`
     estimates from the first 40 frames (:func:`mona_vo.pipeline.camera_ahead`), as the
-    masks inside `run` get it; the row then carries ``focal_px``."""
+    masks inside `run` get it, with ``pipeline``'s calibration settings (a PipelineConfig;
+    default its defaults); the row then carries ``focal_px``."""
     from data_tools.davis import DavisSequence
 
     config = config or MaskConfig()
@@ -124,7 +125,7 @@ def davis_rows(root: str | Path | None = None,
         if calib == "estimate":
             from mona_vo.pipeline import PipelineConfig, camera_ahead
 
-            pipeline = PipelineConfig()
+            pipeline = pipeline or PipelineConfig()
             head = ds.frames(max_frames=pipeline.calibration.frames)
             _, _, intrinsics = camera_ahead(head, pipeline, head.width, head.height)
             extra = {"focal_px": float(intrinsics.fx)}
@@ -236,7 +237,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     from mona_vo.config import load_config, parse_set_options
     from mona_vo.pipeline import PipelineConfig
 
-    config = load_config(PipelineConfig, None, parse_set_options(args.set)).masks
+    pipeline = load_config(PipelineConfig, None, parse_set_options(args.set))
+    config = pipeline.masks
     parts = set(args.parts.split(","))
     seeds: list[int] = []
     for item in (x.strip() for x in args.seeds.split(",") if x.strip()):
@@ -247,7 +249,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         print("== speed (ms per frame per stage) ==")
         print(format_table(speed_rows(config=config)), flush=True)
     if "davis" in parts and (SHARED_DATA / "davis2016").is_dir():
-        rows = davis_rows(modes=tuple(args.modes.split(",")), config=config, calib=args.calib)
+        rows = davis_rows(modes=tuple(args.modes.split(",")), config=config, calib=args.calib,
+                          pipeline=pipeline)
         print("\n== DAVIS-2016 (J, F) per sequence and prompt mode ==")
         print(format_table(rows))
         print("\n== DAVIS-2016 means: tuning part, validation part, all ==")

@@ -553,7 +553,9 @@ def _cmd_eval_tum(args) -> int:
     # The tolerance and the camera change the results of finished runs, so they are part of
     # what a run is.
     rows = evaluate(seqs, variants, args.out, config=config, workers=args.workers, address=args.address,
-                    extra_hash={"dataset": "tum", "max_diff": max_diff, "calib": args.calib or ""},
+                    extra_hash={"dataset": "tum", "max_diff": max_diff,
+                                "calib": "estimate" if estimate else
+                                         [calib.fx, calib.fy, calib.cx, calib.cy] if calib else ""},
                     progress=not args.quiet)
     _print_summary(rows)
     print(f"wrote {args.out}/results.md")

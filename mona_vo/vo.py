@@ -712,7 +712,7 @@ class VisualOdometry:
         # Without intrinsics the focal length is a guess or an estimate from the first frames'
         # few keyframes; the whole run's keyframes hold more rotation and parallax, so it is
         # freed here (one shared Cal3f, its weak prior at the start value) and every keyframe
-        # takes it (generated creep from a focal 28 % too long: +2.8 % after, 0.57 -> 0.24 % of
+        # takes it (generated creep from a focal 28 % too long: +6.9 % after, 0.45 -> 0.13 % of
         # path). Where the clip does not constrain it, the prior keeps the start value.
         free = self.cfg.global_camera != "none" and not self._camera_known
         res = refine_global(graph, self.cfg.ba, refine_focal=free)

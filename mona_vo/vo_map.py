@@ -52,7 +52,9 @@ _STATUS_LIST = list(FrameStatus)
 class LandmarkFlag(IntFlag):
     MASKED = 1       # observed inside a moving-object mask at some frame
     DYNAMIC = 2      # failed the front end's Cauchy test twice in a row
-    REJECTED = 4     # the bundle adjustment could not explain it
+    REJECTED = 4     # the bundle adjustment could not explain it, or its track's patch stopped
+                     # looking as at the last keyframe (VisualOdometry._drop_dissimilar); the
+                     # report's `dropped` counters tell the two apart
 
 
 def _grow(a: np.ndarray, n: int, fill) -> np.ndarray:
