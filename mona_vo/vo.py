@@ -50,7 +50,7 @@ from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dynam
                               estimate_pose, interpolate_pose, keyframe_needed, patch_similarity,
                               predict_pose,
                               refine_pose, rotation_free_parallax_px, triangulate_against,
-                              typical_speed)
+                              typical_speed, typical_velocity)
 
 # Per-frame status strings (FrameStatus values), from most to least trustworthy.
 KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED = (
@@ -234,6 +234,7 @@ class VisualOdometry:
         self._last_kf_view = None   # (gray, track ids, uv, T_world_cam, intrinsics) of the
                                     # last keyframe made while tracking (_drop_dissimilar)
         self._speed_hint: float | None = None       # map units/frame before a re-initialisation
+        self._velocity_hint: np.ndarray | None = None  # body velocity carried while re-initialising
         self._rmse = float("nan")
         self._pose_settings = PoseSettings(config.pnp_threshold_px, config.pnp_min_inliers,
                                            config.pnp_guided_px, config.pnp_guided_min_share,
@@ -265,7 +266,7 @@ class VisualOdometry:
         if self._attempt is not None:
             # The clip ended before a map: the waiting frames keep their rotation-only poses.
             for w in self._attempt.waiting:
-                self._write_absolute(w.frame, FrameStatus.ROTATION_ONLY, len(w.obs.ids), w.T_world_cam)
+                self._write_absolute(w.frame, self._unmapped_status, len(w.obs.ids), w.T_world_cam)
             self._attempt = None
         fr = self.map.frames
         for t in range(fr.n):
@@ -376,6 +377,8 @@ class VisualOdometry:
             speed = typical_speed(kf.frame[rows], kf.T_world_cam[rows, :3, 3],
                                   self.cfg.reinit_speed_keyframes)
             self._speed_hint = speed or self._speed_hint
+            self._velocity_hint = typical_velocity(kf.frame[rows], kf.T_world_cam[rows],
+                                                   self.cfg.reinit_speed_keyframes)
             self._write_absolute(t, FrameStatus.EXTRAPOLATED, n_inl, T_guess)
             m.state = VOState.INIT
             self._start_attempt(t, gray, obs, intr, mask, T_guess)
@@ -431,6 +434,13 @@ class VisualOdometry:
         self._attempt = _Attempt(first, waiting)
         self._settle_unreachable()
 
+    @property
+    def _unmapped_status(self) -> FrameStatus:
+        """What a frame no map could pose is: its rotation alone, or, while a lost map is
+        re-made, its rotation and the carried velocity."""
+        return FrameStatus.ROTATION_ONLY if self._velocity_hint is None else \
+            FrameStatus.EXTRAPOLATED
+
     def _settle_unreachable(self) -> None:
         """Waiting frames that share too few live tracks can never be posed on a map built
         later (its landmarks are tracks alive then): they keep their rotation-only pose now."""
@@ -439,7 +449,7 @@ class VisualOdometry:
         for w in self._attempt.waiting:
             if w.frame != self._attempt.first.frame and \
                     np.isin(w.obs.ids, live).sum() < self.cfg.pnp_min_inliers:
-                self._write_absolute(w.frame, FrameStatus.ROTATION_ONLY, len(w.obs.ids), w.T_world_cam)
+                self._write_absolute(w.frame, self._unmapped_status, len(w.obs.ids), w.T_world_cam)
             else:
                 keep.append(w)
         self._attempt.waiting = keep
@@ -471,7 +481,11 @@ class VisualOdometry:
         if ok and self._initialise(t, gray, obs, intr, mask, rel, common[rel.inliers]):
             self.timings["pose"] += time.perf_counter() - t0
             return
-        T = k0.T_world_cam @ make_pose(R if R is not None else np.eye(3), np.zeros(3))
+        # While a lost map is re-made, the camera keeps its usual velocity (a walk does not
+        # stop because tracking did); before the first map nothing says it moved.
+        step = np.zeros(3) if self._velocity_hint is None else \
+            (t - k0.frame) * self._velocity_hint
+        T = k0.T_world_cam @ make_pose(R if R is not None else np.eye(3), step)
         att.waiting.append(_Waiting(t, obs, intr, T))
         if len(common) < max(self.cfg.init_min_inliers, 0.3 * len(s0.ids)):
             # The view changed too much for this first keyframe: a new attempt from this frame,
@@ -541,7 +555,8 @@ class VisualOdometry:
             else:
                 # Before the first keyframe: its rotation was measured against it, so it
                 # follows it too.
-                self._write_relative(w.frame, FrameStatus.ROTATION_ONLY, n, row0, w.T_world_cam)
+                self._write_relative(w.frame, self._unmapped_status, n, row0, w.T_world_cam)
+        self._velocity_hint = None
         self._make_keyframe(t, gray, obs, intr, mask, T1, int(good.sum()), bootstrapping=True)
         return True
 

@@ -187,6 +187,30 @@ def typical_speed(frames: np.ndarray, positions: np.ndarray, recent: int) -> flo
     return float(np.median(per_frame)) if len(per_frame) else None
 
 
+def typical_velocity(frames: np.ndarray, T_world_cam: np.ndarray, recent: int
+                     ) -> np.ndarray | None:
+    """The map's usual translation per frame in the camera's own axes (its body velocity):
+    over the last ``recent`` steps between consecutive keyframes ((K,) frame indices,
+    (K, 4, 4) poses, in time order), each step is expressed in the axes of the keyframe it
+    starts from and divided by its frame gap; the velocity is the mean direction of those
+    steps, with the length of :func:`typical_speed`. Body axes, because a walking or driving
+    camera keeps moving forward while it turns; None without a step or without a common
+    direction (a hand-held camera shaking about one place)."""
+    f = np.asarray(frames, np.float64)
+    T = np.asarray(T_world_cam, np.float64)
+    speed = typical_speed(f, T[:, :3, 3], recent)
+    if speed is None:
+        return None
+    d = np.einsum("kji,kj->ki", T[:-1, :3, :3], np.diff(T[:, :3, 3], axis=0))[-recent:]
+    n = np.linalg.norm(d, axis=1)
+    d = d[n > 0] / n[n > 0, None]
+    mean = d.mean(axis=0)
+    # Steps pointing every way (|mean| of unit vectors near 0) have no direction to carry.
+    if np.linalg.norm(mean) < 0.5:
+        return None
+    return speed * mean / np.linalg.norm(mean)
+
+
 def interpolate_pose(Ta: np.ndarray, Tb: np.ndarray, a: float) -> np.ndarray:
     """Pose a of the way from Ta to Tb (rotation by slerp, centre linearly)."""
     R = Slerp([0, 1], Rotation.from_matrix([Ta[:3, :3], Tb[:3, :3]]))(a).as_matrix()

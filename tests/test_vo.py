@@ -118,8 +118,9 @@ def test_a_pure_pan_is_concluded_rotation_only_with_its_evidence():
 def test_fast_rotation_under_motion_blur_keeps_tracking_with_weak_texture_points():
     """Generated 'mixed' seed 3 (a tuning seed): low-texture walls, motion blur, 3-4.5 deg per
     frame and a walking camera. With the fixed point score (1e-4) tracking was lost after frame
-    20 and the 18 frames after it stayed rotation-only (12 % ATE); the score relative to the
-    frame's best keeps every frame tracked."""
+    20 and the 18 frames after it got no map (12 % ATE; 5.3 % since lost frames carry the
+    camera's velocity); the score relative to the frame's best keeps every frame tracked
+    (5.0 %)."""
     from eval.metrics import Trajectory, evaluate_trajectory
     from eval.vo_bench import render_sequence
     from mona_vo.pipeline import PipelineConfig, estimate_trajectory
@@ -132,11 +133,38 @@ def test_fast_rotation_under_motion_blur_keeps_tracking_with_weak_texture_points
         cfg = apply_overrides(PipelineConfig(), {"vo.refine": "none", **sets})
         res = estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=list(masks),
                                   config=cfg).vo
-        out[name] = (list(res.status).count("rotation-only"),
+        out[name] = (sum(s in ("rotation-only", "extrapolated") for s in res.status),
                      evaluate_trajectory(gt, Trajectory(res.timestamps, res.poses)).ate_percent_of_path)
     assert out["fixed"][0] >= 10            # the failure this guards against still exists
     assert out["relative"][0] == 0
-    assert out["relative"][1] < 0.6 * out["fixed"][1]
+    assert out["relative"][1] < out["fixed"][1]
+
+
+def test_frames_where_tracking_is_lost_carry_the_walk_on_until_a_new_map():
+    """Three blank frames in a forward walk (generated 'mixed' seed 105, a validation seed,
+    used here for its straight path): tracking is lost and a new map starts after them. The
+    frames between keep the camera's usual body velocity; before, they kept the lost frame's
+    position, and the new map started there, so the walk after it was offset by the gap
+    (ATE 0.41 m against 0.17 m with the velocity carried)."""
+    from eval.metrics import Trajectory, evaluate_trajectory
+    from eval.vo_bench import _Frame, render_sequence
+    from mona_vo.pipeline import PipelineConfig, estimate_trajectory
+
+    scene, frames, masks = render_sequence("mixed", 105, 30, 480, 204)
+    for i in (12, 13, 14):
+        frames[i] = _Frame(i, float(i), frames[i].name, np.full_like(frames[i].image, 128))
+    res = estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=list(masks),
+                              config=PipelineConfig()).vo
+    assert res.drops["tracking_lost"] >= 1
+    gap = [i for i, s in enumerate(res.status) if s == "extrapolated"]
+    assert gap and set(gap) <= {12, 13, 14}
+    c = res.poses[:, :3, 3]
+    usual = np.median(np.linalg.norm(np.diff(c[:11], axis=0), axis=1))
+    steps = np.linalg.norm(np.diff(c[gap[0] - 1:16], axis=0), axis=1)
+    assert np.all(steps > 0.5 * usual) and np.all(steps < 2.0 * usual)
+    m = evaluate_trajectory(Trajectory(np.arange(30, dtype=float), scene.poses()),
+                            Trajectory(res.timestamps, res.poses))
+    assert m.ate_percent_of_path < 2.0
 
 
 def test_global_refinement_poses_tracked_frames_again_on_the_refined_map(monkeypatch):

@@ -175,6 +175,27 @@ def test_typical_speed_is_the_median_step_per_frame_of_the_last_keyframes():
     assert typical_speed(frames[:1], positions[:1], recent=20) is None
 
 
+def test_typical_velocity_is_the_forward_step_of_a_turning_walk_and_none_for_a_shake():
+    from scipy.spatial.transform import Rotation
+
+    from mona_vo.conventions import make_pose
+    from mona_vo.vo_steps import typical_velocity
+
+    # A camera walking 0.1 per frame along its own optical axis while it turns 10 deg per
+    # keyframe (every 2 frames): in world axes the steps point every way, in its own the same.
+    poses, c = [], np.zeros(3)
+    for k in range(8):
+        R = Rotation.from_euler("y", 10 * k, degrees=True).as_matrix()
+        poses.append(make_pose(R, c))
+        c = c + R @ np.array([0.0, 0.0, 0.2])
+    v = typical_velocity(np.arange(0, 16, 2), np.stack(poses), recent=20)
+    assert v == pytest.approx([0.0, 0.0, 0.1], abs=1e-9)
+    # Shaking left and right about one place: no direction to carry.
+    shake = np.stack([make_pose(np.eye(3), [0.01 * (-1) ** k, 0, 0]) for k in range(8)])
+    assert typical_velocity(np.arange(8), shake, recent=20) is None
+    assert typical_velocity(np.arange(1), shake[:1], recent=20) is None
+
+
 def test_patch_similarity_sees_through_a_rotation_but_not_a_sliding_background():
     import cv2
 
