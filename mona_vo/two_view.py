@@ -75,6 +75,32 @@ def relative_pose(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr
                         rotation_parallax_deg(pts_a, pts_b, intr_a, intr_b, T_a_b[:3, :3]))
 
 
+def translation_spread_deg(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics,
+                           intr_b: Intrinsics, *, splits: int = 3, seed: int = 0) -> float:
+    """How well matched pixels determine the direction of the translation between two views:
+    the median, over ``splits`` random halvings of the matches, of the angle (degrees) between
+    the translation directions of :func:`relative_pose` on each half; 180 when a half cannot be
+    posed. When the rotation dwarfs the parallax (a fast turn, a far scene) a sideways
+    translation with a slightly different rotation explains the matches almost as well as the
+    true one (the bas-relief ambiguity), and tracking noise then picks the direction: on a
+    generated walk turning 19 deg with 0.6 deg of parallax the halves disagreed by 21-110 deg
+    and the full set was 108 deg off, where well-posed pairs agree within 1.5 deg."""
+    n = len(pts_a)
+    if n < 16:
+        return 180.0
+    rng = np.random.default_rng(seed)
+    angles = []
+    for _ in range(splits):
+        perm = rng.permutation(n)
+        halves = [relative_pose(pts_a[h], pts_b[h], intr_a, intr_b) for h in (perm[::2], perm[1::2])]
+        if any(r is None for r in halves):
+            angles.append(180.0)
+            continue
+        ta, tb = (r.T_a_b[:3, 3] / max(np.linalg.norm(r.T_a_b[:3, 3]), 1e-12) for r in halves)
+        angles.append(float(np.degrees(np.arccos(np.clip(ta @ tb, -1.0, 1.0)))))
+    return float(np.median(angles))
+
+
 def projection_matrix(T_world_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
     """3x4 K [R|t] world-to-image."""
     T_cam_world = invert_pose(T_world_cam)

@@ -144,6 +144,26 @@ def test_essential_matrix_estimator_gives_the_relative_pose():
     assert reprojection_errors(np.eye(4), P, ua, INTR).max() < 2.0
 
 
+def test_translation_spread_tells_a_well_posed_pair_from_a_turn_that_dwarfs_its_parallax():
+    from mona_vo.two_view import translation_spread_deg
+
+    def pair(P, T, noise):
+        ua, ub = _see(np.eye(4), P, noise), _see(T, P, noise, seed=2)
+        inside = np.all((ua > 0) & (ua < (640, 480)) & (ub > 0) & (ub < (640, 480)), axis=1)
+        return ua[inside], ub[inside]
+
+    # A step sideways past points 4-20 m away: the halves agree on the direction.
+    good = translation_spread_deg(*pair(_points(150), _pose(2.0, (0.4, 0.0, 0.1)), 0.2), INTR, INTR)
+    # A 19 deg turn while moving 9 cm past points 10-30 m away (0.1 deg of parallax).
+    T = _pose(19.0, (0.033, 0.018, 0.045))
+    ua, ub = pair(_points(150, near=10.0, far=30.0), T, 0.35)
+    bad = translation_spread_deg(ua, ub, INTR, INTR)
+    t = relative_pose(ua, ub, INTR, INTR).T_a_b[:3, 3]
+    off = np.degrees(np.arccos(t @ T[:3, 3] / np.linalg.norm(T[:3, 3])))
+    assert good < 3.0 and bad > 5 * good and off > 5.0
+    assert translation_spread_deg(ua[:10], ub[:10], INTR, INTR) == 180.0   # too few to split
+
+
 def test_homography_parallax_tells_a_pan_from_a_creep_whatever_the_focal_length():
     P = _points(300, near=4.0, far=20.0)
     pan = homography_parallax_px(_see(np.eye(4), P, 0.2), _see(_pose(8.0), P, 0.2, seed=3))[0]
