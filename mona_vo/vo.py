@@ -24,8 +24,9 @@ ends): the first keyframe of the attempt is kept as long as enough tracks surviv
 accumulates over the longest baseline the tracks allow, and every frame that waited is posed by
 PnP on the new map once it exists. Rotation-only poses are a measured conclusion:
 ``VOResult.parallax`` gives the rotation-free parallax found and the noise floor it was compared
-with. Lost tracking re-initialises a new map chained to the last pose. Every frame gets a pose
-and a status.
+with. Lost tracking re-initialises a new map chained to the last pose; the frames until it
+exists keep the camera's usual body velocity (extrapolated). Every frame gets a pose and a
+status.
 """
 from __future__ import annotations
 
@@ -44,8 +45,7 @@ from mona_vo.errors import ConfigError
 from mona_vo.point_selection import adaptive_min_score, grid_points, texture_score
 from mona_vo.tracking import LKTracker, Tracker, to_gray
 from mona_vo.two_view import (homography_parallax_px, relative_pose, rotation_only,
-                              translation_spread_deg,
-                              rotation_parallax_deg, triangulate)
+                              rotation_parallax_deg, translation_spread_deg, triangulate)
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dynamic_test,
                               estimate_pose, interpolate_pose, keyframe_needed, patch_similarity,
@@ -272,7 +272,8 @@ class VisualOdometry:
 
     def finish(self) -> VOResult:
         if self._attempt is not None:
-            # The clip ended before a map: the waiting frames keep their rotation-only poses.
+            # The clip ended before a map: the waiting frames keep their rotation-only poses
+            # (with the carried velocity after a loss).
             for w in self._attempt.waiting:
                 self._write_absolute(w.frame, self._unmapped_status, len(w.obs.ids), w.T_world_cam)
             self._attempt = None
