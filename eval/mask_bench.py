@@ -106,15 +106,15 @@ def davis_rows(root: str | Path | None = None,
                sequences: Sequence[str] = DAVIS_TUNE + DAVIS_VALIDATE,
                modes: Sequence[str] = ("boxes",),
                config: MaskConfig | None = None, max_frames: int | None = None,
-               calib: str = "guess", pipeline=None) -> list[dict]:
+               calib: str = "estimate", pipeline=None) -> list[dict]:
     """One row per (sequence, prompt mode): J and F means over all frames, the sequence's
     split ('tune' or 'validate', by the board's DAVIS split) and the mean seconds per frame.
     ``root``: one DAVIS folder holding every sequence; None looks each one up in the shared
-    data (:func:`davis_root_of`). ``calib``: ``guess`` gives the masker the 60-degree
-    field-of-view guess (as `mona-vo masks`); ``estimate`` the focal length that `mona-vo run`
-    estimates from the first 40 frames (:func:`mona_vo.pipeline.camera_ahead`), as the
-    masks inside `run` get it, with ``pipeline``'s calibration settings (a PipelineConfig;
-    default its defaults); the row then carries ``focal_px``."""
+    data (:func:`davis_root_of`). ``calib``: ``estimate`` (default) gives the masker
+    the focal length `mona-vo masks` and `mona-vo run` estimate from the first 40 frames
+    (:func:`mona_vo.pipeline.camera_ahead`, with ``pipeline``'s calibration settings, a
+    PipelineConfig, default its defaults), as the product's masks get it; the row then carries
+    ``focal_px``. ``guess``: the 60-degree field-of-view guess."""
     from data_tools.davis import DavisSequence
 
     config = config or MaskConfig()
@@ -227,9 +227,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--frames", type=int, default=30, help="frames per synthetic scene")
     parser.add_argument("--size", default="1024x436", help="synthetic image size WxH")
     parser.add_argument("--modes", default="boxes", help="DAVIS prompt modes: boxes,points,raw-boxes")
-    parser.add_argument("--calib", choices=("guess", "estimate"), default="guess",
-                        help="DAVIS: the masker's camera, the 60-degree guess (as `mona-vo masks`) "
-                             "or the focal length `mona-vo run` estimates (default guess)")
+    parser.add_argument("--calib", choices=("guess", "estimate"), default="estimate",
+                        help="DAVIS: the masker's camera, the focal length `mona-vo masks` and "
+                             "`run` estimate (default) or the 60-degree field-of-view guess")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one pipeline config value, e.g. --set "
                              "masks.evidence.decay=0.7 (repeatable; as `mona-vo masks --set`)")

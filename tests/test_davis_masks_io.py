@@ -98,13 +98,14 @@ def test_mask_folder_problems_name_folder_and_files(tmp_path):
 
 
 def test_mask_bench_davis_with_the_focal_length_run_estimates(shared_subdir):
-    """`--calib estimate` hands the masker the camera `mona-vo run` would estimate (car-shadow:
-    the reconstruction takes a focal length about 13 % below the 60-degree guess's 740 px)."""
+    """By default (`--calib estimate`) the bench hands the masker the camera `mona-vo masks` and
+    `run` would estimate (car-shadow: the reconstruction takes a focal length about 13 % below
+    the 60-degree guess's 740 px); `--calib guess` the guess."""
     from eval.mask_bench import davis_rows
 
     root = shared_subdir("davis2016")
-    guess, = davis_rows(root, ("car-shadow",), max_frames=6)
-    est, = davis_rows(root, ("car-shadow",), max_frames=6, calib="estimate")
+    guess, = davis_rows(root, ("car-shadow",), max_frames=6, calib="guess")
+    est, = davis_rows(root, ("car-shadow",), max_frames=6)
     assert "focal_px" not in guess
     assert 500 < est["focal_px"] < 0.95 * 739.6
     assert 0.0 <= est["J"] <= 1.0 and est["frames"] == 6
