@@ -466,7 +466,12 @@ class MonaMasker:
         use_evidence = cfg.evidence.enabled and cfg.prompt == "boxes" and mmap is not None
         logodds = found = allowed = None
         if use_evidence:
-            logodds = self._accumulate(mmap, motion_theta, dyn)
+            texture = None
+            if cfg.evidence.texture_ref > 0:
+                h, w = mmap.shape
+                small = cv2.resize(to_gray(image), (w, h), interpolation=cv2.INTER_AREA)
+                texture = texture_score(small, "min_eigen")
+            logodds = self._accumulate(mmap, motion_theta, dyn, texture)
             follow = None
             if self._found is not None and self._prev_flow is not None and self._found.any():
                 follow = forward_warp_mask(self._found, self._prev_flow)
@@ -532,8 +537,8 @@ class MonaMasker:
             np.isfinite(stability) and stability < cfg.vo_min_stability)
         return stability, bool(reliable)
 
-    def _accumulate(self, mmap: np.ndarray, motion_theta: float,
-                    dyn: DynamicPoints) -> np.ndarray:
+    def _accumulate(self, mmap: np.ndarray, motion_theta: float, dyn: DynamicPoints,
+                    texture: np.ndarray | None) -> np.ndarray:
         """This frame's log-odds map: the last one carried along the flow, decayed, plus this
         frame's observation (:mod:`mona_vo.mask_evidence`). The first frame counts its
         observation twice (as if seen one frame before): a mover in view from the start is
@@ -541,7 +546,7 @@ class MonaMasker:
         ev = self.config.evidence
         dyn_sel = dyn.is_dynamic
         obs = mask_evidence.observe(mmap, motion_theta, mmap.shape, dyn.points[dyn_sel],
-                                    dyn.residual[dyn_sel], self._size[0], ev)
+                                    dyn.residual[dyn_sel], self._size[0], ev, texture)
         if self._logodds is None or self._logodds.shape != mmap.shape:
             return mask_evidence.update(obs, obs, dataclasses.replace(ev, decay=0.999))
         carried = mask_evidence.carry(self._logodds, self._prev_flow, 0.0, ev)
