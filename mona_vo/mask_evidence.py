@@ -14,19 +14,18 @@ that the pixel is on a moving object) and changes it by small pure steps, one pe
                threshold) gives ``2 log z`` -- the log-odds of the Cauchy dynamic probability
                ``1 - 1 / (1 + z^2)`` at scale theta, zero at the threshold -- clipped to
                ``[obs_min, obs_max]``; pixels without a valid residual (0 in the map) observe
-               nothing. Positive values are weighted by ``s / (s + texture_ref)``, ``s`` the
-               min-eigen texture score of the frame at the map's resolution: where the image is
-               flat (sky, a bare wall) the flow is interpolated from around it, not measured,
-               and a residual there says little. The reference is absolute (about three times
-               what grey-level noise of sigma 2 scores), not the frame's median: a mover
-               smoother than its background (a red car before a rock wall) must keep its
-               evidence (measured: with the median as reference that car was lost for three
-               frames, IoU 0.24). DAVIS, with the focal length `mona-vo masks` estimates: mean J
-               tuning 0.487 -> 0.539, validation 0.483 -> 0.498; parkour's false-positive area
-               7.7 -> 3.5 % of the image. Dynamic points (judged over their whole track window,
-               so they see a mover in frames where the dense test does not) add ``point_gain``
-               times their Cauchy probability within ``point_radius_frac`` of the image
-               diagonal.
+               nothing. With ``texture_ref`` > 0 positive values are weighted by
+               ``s / (s + texture_ref)``, ``s`` the min-eigen texture score of the frame at the
+               map's resolution: on a flat sky or wall the flow is interpolated from around it,
+               not measured. Off by default: at 1e-4 DAVIS J rose (tuning 0.487 -> 0.539,
+               validation 0.483 -> 0.498; parkour's false-positive area 7.7 -> 3.5 % of the
+               image), but people in flat clothes before a white wall lost evidence too, and on
+               Bonn crowd frames 0-449 the MONA runs' ATE rose in every one of five draws (mean
+               4.53 -> 6.96 cm; 3e-5: 7.01 cm). A reference relative to the frame's median lost a
+               generated red car smoother than the rock wall behind it for three frames.
+               Dynamic points (judged over their whole track window, so they see a mover in
+               frames where the dense test does not) add ``point_gain`` times their Cauchy
+               probability within ``point_radius_frac`` of the image diagonal.
 ``update``     ``L_t = clip(decay * carry(L_{t-1}) + observe_t, clamp_lo, clamp_hi)``: evidence
                rises within two or three frames of consistent motion and falls over a few frames
                without it (a one-frame spike on static ground starts from ``clamp_lo`` and does
@@ -81,9 +80,9 @@ class EvidenceConfig:
                                   # of a flow discontinuity larger than this (map pixels) carries
                                   # no positive evidence (its flow mixes two motions)
     edge_radius: int = setting(2, ge=0)  # see edge_change_px (map pixels; 0: only the pixel)
-    texture_ref: float = setting(1e-4, ge=0)  # the dense test's positive evidence is weighted
+    texture_ref: float = setting(0.0, ge=0)  # the dense test's positive evidence is weighted
                                   # by s / (s + this), s the min-eigen texture score of the
-                                  # analysis-resolution grey image (0: unweighted)
+                                  # analysis-resolution grey image (0: unweighted; see observe)
     bound_px: int = setting(5, ge=-1)  # segmentation stays within this many analysis pixels of
                                   # the regions' convex hulls (0: the hulls; -1: no bound)
 

@@ -180,11 +180,12 @@ def test_davis_region_similarity_above_measured_floor(shared_subdir, seq):
     assert J > DAVIS_J_FLOOR
 
 
-def test_flat_sky_and_walls_do_not_become_movers_on_davis_parkour(shared_subdir):
-    """A residual where the image is flat is weak evidence (``evidence.texture_ref``).
-    Measured on parkour (a tuning sequence: a camera following a runner past a wall under a
-    flat sky), with the camera `mona-vo masks` estimates: false-positive area 7.7 -> 3.5 % of
-    the image, recall 0.90 -> 0.87."""
+def test_texture_ref_keeps_flat_sky_from_seeding_movers_on_davis_parkour(shared_subdir):
+    """With ``evidence.texture_ref`` a residual where the image is flat is weak evidence. Measured
+    on parkour (a tuning sequence: a camera following a runner past a wall under a flat sky),
+    with the camera `mona-vo masks` estimates: false-positive area 7.7 -> 3.5 % of the image,
+    recall 0.90 -> 0.87. Off by default: it cost the VO on Bonn crowd (mask_evidence's
+    docstring); this pins what the option does."""
     from data_tools.davis import DavisSequence
     from mona_vo.pipeline import PipelineConfig, camera_ahead
 
@@ -194,7 +195,7 @@ def test_flat_sky_and_walls_do_not_become_movers_on_davis_parkour(shared_subdir)
     frames = [f.image for f in ds.frames()]
     gts = list(ds.masks())
     stats = {}
-    for ref in (0.0, MaskConfig().evidence.texture_ref):
+    for ref in (MaskConfig().evidence.texture_ref, 1e-4):
         cfg = MaskConfig()
         cfg = dataclasses.replace(cfg, evidence=dataclasses.replace(cfg.evidence, texture_ref=ref))
         masks = [o.mask for o in compute_masks(list(enumerate(frames)), cfg, camera)]
