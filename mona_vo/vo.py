@@ -481,15 +481,15 @@ class VisualOdometry:
         R = None if ro is None else ro[0]
         ok = (rel is not None and rel.n_inliers >= self.cfg.init_min_inliers
               and rel.median_parallax_deg >= self.cfg.init_min_parallax_deg)
+        if ok:
+            ua, ub = s0.uv[i0][rel.inliers], s.uv[i1][rel.inliers]
         if ok and R is not None:
             # Near a pure rotation the essential matrix is ill-posed and its "parallax" is noise;
             # the parallax left after the best homography rotation tells the truth.
-            par_h = rotation_parallax_deg(s0.uv[i0][rel.inliers], s.uv[i1][rel.inliers], k0.intr,
-                                          intr, R)
+            par_h = rotation_parallax_deg(ua, ub, k0.intr, intr, R)
             ok = np.radians(float(np.median(par_h))) * intr.fx >= self.cfg.init_min_rotation_free_px
         if ok and self.cfg.init_max_translation_spread_deg < 180:
-            sa, sb = s0.uv[i0][rel.inliers], s.uv[i1][rel.inliers]
-            ok = translation_spread_deg(sa, sb, k0.intr, intr) <= \
+            ok = translation_spread_deg(ua, ub, k0.intr, intr) <= \
                 self.cfg.init_max_translation_spread_deg
         if ok and self._initialise(t, gray, obs, intr, mask, rel, common[rel.inliers]):
             self.timings["pose"] += time.perf_counter() - t0

@@ -192,8 +192,8 @@ def typical_velocity(frames: np.ndarray, T_world_cam: np.ndarray, recent: int
     """The map's usual translation per frame in the camera's own axes (its body velocity):
     over the last ``recent`` steps between consecutive keyframes ((K,) frame indices,
     (K, 4, 4) poses, in time order), each step is expressed in the axes of the keyframe it
-    starts from and divided by its frame gap; the velocity is the mean direction of those
-    steps, with the length of :func:`typical_speed`. Body axes, because a walking or driving
+    starts from; the velocity points along the mean of those steps' unit directions and has
+    the length of :func:`typical_speed` (per frame, over the same steps). Body axes, because a walking or driving
     camera keeps moving forward while it turns; None without a step or without a common
     direction (a hand-held camera shaking about one place)."""
     f = np.asarray(frames, np.float64)
