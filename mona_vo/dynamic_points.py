@@ -101,7 +101,7 @@ from mona_vo.config import check_fields, setting
 from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
 from mona_vo.errors import ConfigError
 from mona_vo.flow import vector_lengths
-from mona_vo.geometry import cauchy_dynamic_probability, find_essential
+from mona_vo.geometry import cauchy_dynamic_probability, find_essential, sampson_residuals
 from mona_vo.point_selection import grid_points, random_points, texture_score
 from mona_vo.tracking import Tracker, to_gray
 
@@ -212,21 +212,6 @@ def transfer_residuals(H_b_a: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) 
     out = np.asarray(pts_b, np.float64).reshape(-1, 2) - proj
     out[~np.isfinite(out).all(axis=1)] = np.inf
     return out
-
-
-def sampson_residuals(F_b_a: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
-    """(N, 2) float64 signed Sampson distance times the unit normal of the epipolar line
-    ``F x_a`` in image b, pixels: the first-order deviation of (x_a, x_b) from the epipolar
-    constraint, as a vector across the epipolar line."""
-    F = np.asarray(F_b_a, np.float64)
-    xa, xb = _homogeneous(pts_a), _homogeneous(pts_b)
-    Fxa = xa @ F.T            # epipolar lines in b
-    Ftxb = xb @ F             # epipolar lines in a
-    num = np.sum(xb * Fxa, axis=1)
-    den = Fxa[:, 0] ** 2 + Fxa[:, 1] ** 2 + Ftxb[:, 0] ** 2 + Ftxb[:, 1] ** 2
-    d = num / np.sqrt(np.maximum(den, 1e-300))
-    normal = Fxa[:, :2] / np.maximum(vector_lengths(Fxa[:, :2])[:, None], 1e-300)
-    return d[:, None] * normal
 
 
 def cheirality_residuals(H_inf_b_a: np.ndarray, epipole_b: np.ndarray, pts_a: np.ndarray,

@@ -44,6 +44,22 @@ def find_essential(pts_a: np.ndarray, pts_b: np.ndarray, K: np.ndarray, threshol
     return E[:3], inl.ravel() > 0
 
 
+def sampson_residuals(F_b_a: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
+    """(N, 2) float64 signed Sampson distance times the unit normal of the epipolar line
+    ``F x_a`` in image b, pixels: the first-order deviation of (x_a, x_b) from the epipolar
+    constraint, as a vector across the epipolar line. pts_a, pts_b: (N, 2) pixels."""
+    F = np.asarray(F_b_a, np.float64)
+    xa = np.column_stack([np.asarray(pts_a, np.float64).reshape(-1, 2), np.ones(len(pts_a))])
+    xb = np.column_stack([np.asarray(pts_b, np.float64).reshape(-1, 2), np.ones(len(pts_b))])
+    Fxa = xa @ F.T            # epipolar lines in b
+    Ftxb = xb @ F             # epipolar lines in a
+    num = np.sum(xb * Fxa, axis=1)
+    den = Fxa[:, 0] ** 2 + Fxa[:, 1] ** 2 + Ftxb[:, 0] ** 2 + Ftxb[:, 1] ** 2
+    d = num / np.sqrt(np.maximum(den, 1e-300))
+    normal = Fxa[:, :2] / np.maximum(np.linalg.norm(Fxa[:, :2], axis=1)[:, None], 1e-300)
+    return d[:, None] * normal
+
+
 def cauchy_dynamic_probability(residual_xy: np.ndarray, scale: float) -> np.ndarray:
     """(N,) float64 ``1 - 1 / ((1 + (rx/scale)^2) (1 + (ry/scale)^2))`` of (N, 2) residual
     vectors; NaN residuals give probability 0, infinite ones 1."""

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
-from mona_vo.geometry import find_essential
+from mona_vo.geometry import find_essential, sampson_residuals
 
 
 def normalize(pixels: np.ndarray, intr: Intrinsics) -> np.ndarray:
@@ -73,6 +73,26 @@ def relative_pose(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics, intr
     inliers = mask_pose.ravel() > 0
     return RelativePose(T_a_b, inliers,
                         rotation_parallax_deg(pts_a, pts_b, intr_a, intr_b, T_a_b[:3, :3]))
+
+
+def judge_pose(T_a_b: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics,
+               intr_b: Intrinsics, *, threshold_px: float = 1.0) -> tuple[RelativePose, float]:
+    """A relative pose (view b in view a's frame) judged on matched pixels: as a
+    :class:`RelativePose` whose inliers are the points within ``threshold_px`` (Sampson
+    distance) of their epipolar lines and in front of both views, and its MSAC cost, the sum
+    of min(d, threshold)^2 / threshold^2 over all points (lower is better; two poses judged on
+    the same points compare by it, whatever set either was fitted on)."""
+    T_b_a = invert_pose(T_a_b)
+    t = T_b_a[:3, 3]
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    F = np.linalg.inv(intr_b.K).T @ tx @ T_b_a[:3, :3] @ np.linalg.inv(intr_a.K)
+    d = np.linalg.norm(sampson_residuals(F, pts_a, pts_b), axis=1)
+    d[~np.isfinite(d)] = np.inf
+    _, err, _ = triangulate(np.eye(4), T_a_b, pts_a, pts_b, intr_a, intr_b)
+    inliers = (d < threshold_px) & np.isfinite(err)
+    cost = float(np.sum(np.minimum(d, threshold_px) ** 2)) / threshold_px ** 2
+    par = rotation_parallax_deg(pts_a, pts_b, intr_a, intr_b, T_a_b[:3, :3])
+    return RelativePose(T_a_b, inliers, par), cost
 
 
 def translation_spread_deg(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics,

@@ -258,6 +258,24 @@ class ParallaxEvidence:
                 "map_built": bool(map_built)}
 
 
+def dissimilar_tracks(gray_a: np.ndarray, uv_a: np.ndarray, gray_b: np.ndarray,
+                      uv_b: np.ndarray, H_b_a: np.ndarray, half: int, ratio: float,
+                      floor: float = 0.02, min_tracks: int = 20) -> np.ndarray:
+    """(N,) bool: tracks whose patch at uv_b in gray_b no longer looks as it did at uv_a in
+    gray_a (1 - NCC, :func:`patch_similarity` through H_b_a, above ``ratio`` x the median over
+    the tracks and above ``floor``). Relative to the median, so noise, blur and JPEG, which
+    lower every patch's similarity, do not empty the map. None flagged with fewer than
+    ``min_tracks`` tracks or comparable patches: the median would say nothing."""
+    bad = np.zeros(len(uv_a), bool)
+    if len(uv_a) < min_tracks:
+        return bad
+    d = 1.0 - patch_similarity(gray_a, uv_a, gray_b, uv_b, half, H_b_a)
+    if np.isfinite(d).sum() < min_tracks:
+        return bad
+    with np.errstate(invalid="ignore"):
+        return d > max(ratio * float(np.nanmedian(d)), floor)
+
+
 def patch_similarity(gray_a: np.ndarray, uv_a: np.ndarray, gray_b: np.ndarray, uv_b: np.ndarray,
                      half: int, H_b_a: np.ndarray | None = None) -> np.ndarray:
     """(N,) normalised cross-correlation of the (2 half + 1)^2 patches around uv_b in gray_b

@@ -249,3 +249,51 @@ def test_patch_similarity_sees_through_a_rotation_but_not_a_sliding_background()
     surface = patch_similarity(before, np.array([[150.0, 120.0]]), after,
                                np.array([[150.0, 120.0]]), 4)
     assert junction[0] < 0.9 < surface[0]
+
+
+def test_judge_pose_prefers_the_true_pose_and_counts_its_inliers_as_relative_pose_does():
+    from mona_vo.two_view import judge_pose
+
+    P = _points()
+    Tb = _pose(1.0, (0.0, 0.0, 0.4))            # forward, turning a little
+    ua, ub = _see(np.eye(4), P, 0.2), _see(Tb, P, 0.2, seed=2)
+    ub[:20] += np.random.default_rng(3).normal(0, 8.0, (20, 2))   # a tenth mistracked
+    true, c_true = judge_pose(Tb, ua, ub, INTR, INTR)
+    # A sideways camera with a compensating turn: the bas-relief partner of the true motion.
+    wrong, c_wrong = judge_pose(_pose(1.6, (0.4, 0.0, 0.1)), ua, ub, INTR, INTR)
+    assert c_true < c_wrong
+    assert true.inliers[20:].mean() > 0.95 and true.inliers[:20].mean() < 0.3
+    # The translation's length does not matter (the essential matrix has no scale).
+    longer = Tb.copy()
+    longer[:3, 3] *= 7.0
+    assert judge_pose(longer, ua, ub, INTR, INTR)[1] == pytest.approx(c_true, rel=1e-9)
+    # Flow reversed along its epipolar line (towards the focus of expansion of a forward
+    # step) fits the line exactly but puts the point behind the cameras: no inlier.
+    fwd = _pose(0.0, (0.0, 0.0, 0.4))
+    pa, pb = _see(np.eye(4), P[:50]), _see(fwd, P[:50])
+    assert judge_pose(fwd, pa, pb, INTR, INTR)[0].inliers.all()
+    assert not judge_pose(fwd, pb, pa, INTR, INTR)[0].inliers.any()
+
+
+def test_dissimilar_tracks_flags_the_sliding_junction_relative_to_the_median():
+    import cv2
+
+    from mona_vo.vo_steps import dissimilar_tracks
+
+    def texture(seed):
+        r = np.random.default_rng(seed)
+        return cv2.GaussianBlur(r.uniform(0, 255, (240, 240)).astype(np.float32), (0, 0), 2.0)
+
+    near, far = texture(2), texture(3)
+    edge = np.zeros((240, 240), bool)
+    edge[:, 120:] = True
+    before = np.where(edge, near, far)
+    noise = np.random.default_rng(4).normal(0, 3.0, before.shape).astype(np.float32)
+    after = np.where(edge, near, np.roll(far, 3, axis=1)) + noise     # the far surface slides
+    rng = np.random.default_rng(5)
+    uv = np.c_[rng.uniform(135, 220, 30), rng.uniform(20, 220, 30)]   # on the near surface
+    uv = np.vstack([uv, [[120.0, 60.0], [120.0, 180.0]]])             # two junctions
+    bad = dissimilar_tracks(before, uv, after, uv, np.eye(3), 4, 5.0)
+    assert bad[-2:].all() and not bad[:-2].any()
+    # Too few tracks to know what is usual: nothing is flagged.
+    assert not dissimilar_tracks(before, uv[-5:], after, uv[-5:], np.eye(3), 4, 5.0).any()
