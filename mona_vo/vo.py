@@ -92,8 +92,8 @@ class VOConfig:
                                             # it would start a map. Off: generated scenes gained
                                             # (fresh seeds 300-311, true masks: 300 1.27 -> 0.41,
                                             # 304 2.30 -> 0.22 % of path), Bonn crowd did not
-                                            # (MONA mean of five draws 4.53 -> 4.87 cm; one draw
-                                            # of the 53-frame clip built no map); README
+                                            # (MONA mean of five draws 4.53 -> 4.87 cm, the clip
+                                            # without masks 9.1 -> 10.8 mm); README
     init_keyframes: int = setting(4, ge=2)  # keyframes of the first window (two-view pair included)
     keyframe_parallax_px: float = setting(12.0, gt=0)  # median rotation-free track motion since
                                             # the last keyframe, px
@@ -493,13 +493,14 @@ class VisualOdometry:
             # the pair's translation came out 61-76 deg off; without them 2-9 deg. Once, not on
             # every waiting frame: repeated, each frame's worst few add up and a slow pan's
             # start pair lost two thirds of its tracks.
-            n = len(obs.ids)
-            obs = self._drop_dissimilar_since(att.gray, s0.ids, s0.uv, k0.intr, gray, obs, intr,
-                                              R.T)
-            if len(obs.ids) < n:
-                s0, s = self._static(k0.obs), self._static(obs)
-                common, i0, i1 = np.intersect1d(s0.ids, s.ids, return_indices=True)
-                rel = self._refit_pair(rel, s0.uv[i0], s.uv[i1], k0.intr, intr)
+            sel = self._dissimilar(att.gray, s0.uv[i0], k0.intr, gray, s.uv[i1], intr, R.T)
+            if sel.any():
+                refit = self._refit_pair(rel, s0.uv[i0][~sel], s.uv[i1][~sel], k0.intr, intr)
+                if refit is not None:
+                    obs = self._reject(obs, common[sel])
+                    common, rel = common[~sel], refit
+                # else the pair starts as it is: the check may improve a start, never block
+                # one (the tracks it would drop held the pair above init_min_inliers)
         if rel is not None and self._initialise(t, gray, obs, intr, mask, rel,
                                                 common[rel.inliers]):
             self.timings["pose"] += time.perf_counter() - t0
@@ -674,18 +675,20 @@ class VisualOdometry:
         if self.cfg.patch_dissimilarity <= 0 or self._last_kf_view is None:
             return obs
         g0, ids0, uv0, T0, intr0 = self._last_kf_view
-        R = (invert_pose(T_world_cam) @ T0)[:3, :3]        # last keyframe's camera -> this one
-        return self._drop_dissimilar_since(g0, ids0, uv0, intr0, gray, obs, intr, R)
-
-    def _drop_dissimilar_since(self, g0, ids0, uv0, intr0, gray, obs: Observation, intr,
-                               R_b_a) -> Observation:
-        """:meth:`_drop_dissimilar` against an earlier view (its image, track ids and pixels,
-        intrinsics) whose camera turned by R_b_a (its axes -> this frame's) since."""
         _, i0, i1 = np.intersect1d(ids0, obs.ids, return_indices=True)
+        R = (invert_pose(T_world_cam) @ T0)[:3, :3]        # last keyframe's camera -> this one
+        sel = self._dissimilar(g0, uv0[i0], intr0, gray, obs.uv[i1], intr, R)
+        return self._reject(obs, obs.ids[i1[sel]])
+
+    def _dissimilar(self, g0, uv0, intr0, gray, uv, intr, R_b_a) -> np.ndarray:
+        """(N,) bool :func:`dissimilar_tracks` of tracks seen at uv0 in an earlier image g0 and
+        at uv now, the camera having turned by R_b_a (earlier axes -> this frame's) since."""
         H = intr.K @ R_b_a @ np.linalg.inv(intr0.K)
-        sel = dissimilar_tracks(g0, uv0[i0], gray, obs.uv[i1], H, self.cfg.patch_half_px,
-                                self.cfg.patch_dissimilarity)
-        bad = obs.ids[i1[sel]]
+        return dissimilar_tracks(g0, uv0, gray, uv, H, self.cfg.patch_half_px,
+                                 self.cfg.patch_dissimilarity)
+
+    def _reject(self, obs: Observation, bad: np.ndarray) -> Observation:
+        """Dissimilar tracks out for good: their landmarks flagged, their tracks ended."""
         if not len(bad):
             return obs
         self.drops["tracks_dissimilar"] += self.map.landmarks.flag(bad, LandmarkFlag.REJECTED)
