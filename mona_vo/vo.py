@@ -489,10 +489,10 @@ class VisualOdometry:
             # The keyframes' dissimilarity check (_drop_dissimilar) on the start pair too, once
             # it would start a map: tracks that slide along a depth edge can fit a wrong
             # essential matrix better than the true one. On a generated forward follow (mixed
-            # seed 2) a tenth of the pair's tracks were such, nearly all on a depth edge, and
-            # the pair's translation came out 61-76 deg off; without them 2-9 deg. Once, not on
-            # every waiting frame: repeated, each frame's worst few add up and a slow pan's
-            # start pair lost two thirds of its tracks.
+            # seed 2) the check drops a tenth of the pair's tracks, most of them on a true
+            # depth edge; with them the translation came out 61-76 deg off, without them 2-9
+            # deg. Once, not on every waiting frame: repeated, each frame's worst few add up,
+            # and a slow pan's start pair lost two thirds of its tracks.
             sel = self._dissimilar(att.gray, s0.uv[i0], k0.intr, gray, s.uv[i1], intr, R.T)
             if sel.any():
                 refit = self._refit_pair(rel, s0.uv[i0][~sel], s.uv[i1][~sel], k0.intr, intr)
