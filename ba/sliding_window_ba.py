@@ -13,9 +13,11 @@ The fixed poses carry the world frame and scale that earlier windows established
 windows agree. Keyframes that left the window are never touched again (the LEAP-VO/DPVO
 fixed-lag scheme, instead of a marginal prior).
 
-Masks: a per-keyframe boolean moving-object mask may be given. An observation inside a mask is
-not added, and a landmark observed inside a mask in *any* keyframe of the window is dropped as a
-whole (its other observations are not added either). :class:`BAResult` counts both.
+Masks: a per-keyframe boolean moving-object mask, or a per-observation flag (``obs_masked``, what
+the VO passes: its tracks know whether they were inside a mask), may be given. An observation
+inside a mask is not added, and a landmark observed inside a mask in *any* keyframe of the window
+is dropped as a whole (its other observations are not added either). :class:`BAResult` counts
+both.
 """
 from __future__ import annotations
 
@@ -80,6 +82,8 @@ class BAProblem:
     obs_uv:       (M, 2) float64 observed pixels x, y.
     masks:        keyframe id -> (H, W) bool moving-object mask (optional per keyframe).
     scale_anchor: optional (fixed keyframe id, other keyframe id, distance in world units).
+    obs_masked:   optional (M,) bool, observations known to lie inside a moving-object mask
+                  (the caller's per-observation flags; left out as the masks' are).
     """
 
     poses: dict[int, np.ndarray]
@@ -91,6 +95,7 @@ class BAProblem:
     obs_uv: np.ndarray
     masks: dict[int, np.ndarray] = field(default_factory=dict)
     scale_anchor: tuple[int, int, float] | None = None
+    obs_masked: np.ndarray | None = None
 
 
 @dataclass
@@ -236,7 +241,10 @@ def sliding_window_ba(problem: BAProblem, cfg: BAConfig = BAConfig(), *,
     obs_uv = np.asarray(problem.obs_uv, np.float64)
     in_window = np.isin(obs_kf, list(problem.poses)) & np.isin(obs_lm, list(problem.landmarks))
 
-    masked_obs = observations_in_masks(obs_kf, obs_uv, problem.masks) & in_window
+    masked_obs = observations_in_masks(obs_kf, obs_uv, problem.masks)
+    if problem.obs_masked is not None:
+        masked_obs |= np.asarray(problem.obs_masked, bool)
+    masked_obs &= in_window
     masked_lms = np.unique(obs_lm[masked_obs])
     usable = in_window & ~np.isin(obs_lm, masked_lms)
     degenerate = _degenerate_landmarks(problem, usable, cfg.min_depth_ratio)

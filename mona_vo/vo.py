@@ -717,24 +717,14 @@ class VisualOdometry:
             anchor = (rows[0], rows[1], d)
         else:
             fixed = set(rows[:min(self.cfg.fixed_keyframes, len(rows) - 1)])
-        extra = {}
-        if "obs_masked" in BAProblem.__dataclass_fields__:
-            extra["obs_masked"] = obs_masked
-        else:
-            # Until the factor graph takes per-observation flags: leave the masked observations
-            # and their landmarks out here, with the graph's counters.
-            masked_lms = np.unique(obs_lm[obs_masked])
-            self.drops["ba_masked_observations"] += int(obs_masked.sum())
-            self.drops["ba_masked_landmarks"] += len(masked_lms)
-            sel = ~np.isin(obs_lm, masked_lms)
-            obs_kf, obs_lm, obs_uv = obs_kf[sel], obs_lm[sel], obs_uv[sel]
         uniq = np.unique(obs_lm)
         P = lm.positions(uniq)
         problem = BAProblem(
             poses={r: kf.T_world_cam[r].copy() for r in rows}, fixed=fixed,
             intrinsics={r: kf.intrinsics(r) for r in rows},
             landmarks={int(j): P[i] for i, j in enumerate(uniq)},
-            obs_kf=obs_kf, obs_lm=obs_lm, obs_uv=obs_uv, scale_anchor=anchor, **extra)
+            obs_kf=obs_kf, obs_lm=obs_lm, obs_uv=obs_uv, scale_anchor=anchor,
+            obs_masked=obs_masked)
         refine = self.cfg.refine_focal and self._focal_fixed is None
         res = sliding_window_ba(problem, self.cfg.ba, refine_focal=refine)
         for r in rows:
@@ -756,9 +746,8 @@ class VisualOdometry:
             self.tracker.remove(bad)
         if len(res.masked_landmark_ids):
             lm.flag(res.masked_landmark_ids, LandmarkFlag.MASKED)
-        if extra:
-            self.drops["ba_masked_observations"] += res.masked_observations
-            self.drops["ba_masked_landmarks"] += res.masked_landmarks
+        self.drops["ba_masked_observations"] += res.masked_observations
+        self.drops["ba_masked_landmarks"] += res.masked_landmarks
         if np.isfinite(res.final_rmse_px):
             self._rmse = res.final_rmse_px
         if refine and res.focal is not None and len(m.window) >= self.cfg.window_keyframes:

@@ -123,6 +123,29 @@ def test_moving_points_excluded_from_ba():
     assert t_plain > 5 * t_masked
 
 
+def test_per_observation_mask_flags_leave_the_graph_as_masks_do():
+    """The VO passes per-observation flags (its tracks know whether they were inside a mask):
+    one flagged observation takes its landmark's every observation out of the graph."""
+    poses, pts, kf, lm, uv, rng = _scene(seed=2, n_pts=150)
+    mover = np.arange(150) < 60
+    uv = uv.copy()
+    sel = mover[lm] & (kf >= 2)
+    uv[sel] += np.stack([12.0 * (kf[sel] - 1), np.zeros(sel.sum())], axis=1)
+    flagged = mover[lm] & (kf == 3)      # each mover seen inside a mask in one keyframe only
+    init, lms = _perturb(poses, pts, rng, {0, 1})
+    intr = {k: INTR for k in poses}
+    cfg = BAConfig(max_iterations=30, robust_kernel="none")
+    res = sliding_window_ba(BAProblem(init, {0, 1}, intr, lms, kf, lm, uv, obs_masked=flagged), cfg)
+    seen = np.unique(lm[flagged])
+    assert res.masked_observations == int(flagged.sum())
+    assert set(res.masked_landmark_ids.tolist()) == set(seen.tolist())
+    assert not res.obs_used[np.isin(lm, seen)].any()
+    rest = ~np.isin(lm, seen)
+    alone = sliding_window_ba(BAProblem(init, {0, 1}, intr, lms, kf[rest], lm[rest], uv[rest]), cfg)
+    for k in poses:
+        assert np.allclose(res.poses[k], alone.poses[k], atol=1e-9)
+
+
 def test_fixed_keyframes_hold_the_gauge():
     poses, pts, kf, lm, uv, rng = _scene(seed=3)
     init, lms = _perturb(poses, pts, rng, {0, 1})
