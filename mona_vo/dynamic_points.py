@@ -101,7 +101,8 @@ from mona_vo.config import check_fields, setting
 from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
 from mona_vo.errors import ConfigError
 from mona_vo.flow import vector_lengths
-from mona_vo.geometry import cauchy_dynamic_probability, find_essential, sampson_residuals
+from mona_vo.geometry import (cauchy_dynamic_probability, find_essential, homogeneous,
+                              sampson_residuals)
 from mona_vo.point_selection import grid_points, random_points, texture_score
 from mona_vo.tracking import Tracker, to_gray
 
@@ -194,11 +195,6 @@ class CameraMotion:
     epipole_b: np.ndarray | None = None
 
 
-def _homogeneous(p: np.ndarray) -> np.ndarray:
-    p = np.asarray(p, np.float64).reshape(-1, 2)
-    return np.concatenate([p, np.ones((len(p), 1))], axis=1)
-
-
 def _dehomogenise(q: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         return q[:, :2] / q[:, 2:3]
@@ -206,7 +202,7 @@ def _dehomogenise(q: np.ndarray) -> np.ndarray:
 
 def transfer_residuals(H_b_a: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
     """(N, 2) float64 ``x_b - H x_a`` in pixels of image b (inf where H sends x_a to infinity)."""
-    q = _homogeneous(pts_a) @ np.asarray(H_b_a, np.float64).T
+    q = homogeneous(pts_a) @ np.asarray(H_b_a, np.float64).T
     with np.errstate(divide="ignore", invalid="ignore"):
         proj = q[:, :2] / q[:, 2:3]
     out = np.asarray(pts_b, np.float64).reshape(-1, 2) - proj
@@ -225,7 +221,7 @@ def cheirality_residuals(H_inf_b_a: np.ndarray, epipole_b: np.ndarray, pts_a: np
     squares from ``x_b (h_3 + lam e_3) = h_{12} + lam e_{12}``; where ``lam < 0`` the point moved
     the wrong way (e.g. a car overtaking a forward-moving camera, or a car the panning camera
     follows) and its displacement from the infinity point counts; elsewhere zero."""
-    xa, xb = _homogeneous(pts_a), np.asarray(pts_b, np.float64).reshape(-1, 2)
+    xa, xb = homogeneous(pts_a), np.asarray(pts_b, np.float64).reshape(-1, 2)
     h = xa @ np.asarray(H_inf_b_a, np.float64).T
     e = np.asarray(epipole_b, np.float64)
     a = xb * e[2] - e[:2]
@@ -285,7 +281,7 @@ def _fit_epipolar(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, flag: int, thre
     # parallax, on the side of the infinity point a static point can reach.
     sel = inl.ravel() > 0
     wrong = np.any(cheirality_residuals(H_inf, epipole, pa[sel], pb[sel]) != 0, axis=1)
-    parallax = np.linalg.norm(pb[sel] - _dehomogenise(_homogeneous(pa[sel]) @ H_inf.T), axis=1)
+    parallax = np.linalg.norm(pb[sel] - _dehomogenise(homogeneous(pa[sel]) @ H_inf.T), axis=1)
     if not (len(wrong) and wrong.mean() <= max_wrong_frac
             and np.median(parallax) >= min_parallax * threshold_px):
         return F, None, None

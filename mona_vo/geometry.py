@@ -44,13 +44,18 @@ def find_essential(pts_a: np.ndarray, pts_b: np.ndarray, K: np.ndarray, threshol
     return E[:3], inl.ravel() > 0
 
 
+def homogeneous(p: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 homogeneous coordinates [x, y, 1] of (N, 2) pixels."""
+    p = np.asarray(p, np.float64).reshape(-1, 2)
+    return np.concatenate([p, np.ones((len(p), 1))], axis=1)
+
+
 def sampson_residuals(F_b_a: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
     """(N, 2) float64 signed Sampson distance times the unit normal of the epipolar line
     ``F x_a`` in image b, pixels: the first-order deviation of (x_a, x_b) from the epipolar
     constraint, as a vector across the epipolar line. pts_a, pts_b: (N, 2) pixels."""
     F = np.asarray(F_b_a, np.float64)
-    xa = np.column_stack([np.asarray(pts_a, np.float64).reshape(-1, 2), np.ones(len(pts_a))])
-    xb = np.column_stack([np.asarray(pts_b, np.float64).reshape(-1, 2), np.ones(len(pts_b))])
+    xa, xb = homogeneous(pts_a), homogeneous(pts_b)
     Fxa = xa @ F.T            # epipolar lines in b
     Ftxb = xb @ F             # epipolar lines in a
     num = np.sum(xb * Fxa, axis=1)
