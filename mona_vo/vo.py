@@ -13,7 +13,10 @@ are written once, the window, an Enum state). The steps are pure functions in
 Per frame: track all points (the given :class:`mona_vo.tracking.Tracker`, LK by default); tracks continue through moving-object masks
 (as LEAP-VO's long-term tracks do) but a landmark seen inside a mask is flagged and never used
 for a pose; the pose comes from PnP on the unmasked tracks with landmarks, predicted by a
-constant-velocity model; a Cauchy test on the residuals flags points the masks missed. On a
+constant-velocity model; two tests on the residuals flag points the masks missed: a Cauchy test
+of one frame's residual (a gross jump, twice in a row) and a sequential test of residuals above
+the frame's noise summed over frames (a track that drifts off its static point by a fraction of
+a pixel per frame: a slow mover, one keeping pace, a corner sliding along an outline). On a
 keyframe: drop the tracks whose patch no longer looks as at the last keyframe (corners on depth
 edges, which slide between two surfaces), triangulate new landmarks, top the grid up with new
 tracks, and solve the window's bundle adjustment, which leaves out observations inside a mask and
@@ -42,13 +45,14 @@ from ba.sliding_window_ba import BAConfig, BAProblem, sliding_window_ba
 from mona_vo.config import check_fields, setting
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose, pixels_in_mask
 from mona_vo.errors import ConfigError
+from mona_vo.geometry import reprojection_residuals
 from mona_vo.point_selection import adaptive_min_score, grid_points, texture_score
 from mona_vo.tracking import LKTracker, Tracker, to_gray
 from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose, rotation_only,
                               rotation_parallax_deg, translation_spread_deg, triangulate)
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissimilar_tracks,
-                              dynamic_test, estimate_pose, interpolate_pose, keyframe_needed,
+                              drift_test, dynamic_test, estimate_pose, interpolate_pose, keyframe_needed,
                               predict_pose,
                               refine_pose, rotation_free_parallax_px, triangulate_against,
                               typical_speed, typical_velocity)
@@ -129,6 +133,12 @@ class VOConfig:
                                             # 3 px along a diagonal, 4.3 px along an axis)
     dynamic_prob_max: float = setting(0.9, gt=0, le=1)  # tracks above this dynamic probability
                                             # twice are dropped
+    drift_bound: float = setting(12.0, ge=0)  # drift test (vo_steps.drift_test): a track whose
+                                            # summed log-likelihood ratio of residuals above the
+                                            # frame's noise reaches this is dropped (0: off)
+    drift_breakeven: float = setting(3.0, gt=0)  # a residual of this many times the frame's
+                                            # noise neither adds nor removes drift evidence
+    drift_noise_floor_px: float = setting(0.3, gt=0)  # the frame's noise is at least this, px
     refine_focal: bool = setting(False)     # refine one shared focal length while the first window
                                             # fills (needs rotation; see README's measurements)
     patch_dissimilarity: float = setting(5.0, ge=0)  # at a keyframe, a track whose patch no
@@ -415,9 +425,16 @@ class VisualOdometry:
         s = self._static(obs)
         have = lm.usable(s.ids)
         ids = s.ids[have]
-        strikes, dynamic = dynamic_test(lm.positions(ids), s.uv[have], intr, T, lm.strikes[ids],
-                                        self.cfg.dynamic_scale_px, self.cfg.dynamic_prob_max)
+        r = reprojection_residuals(T, lm.positions(ids), s.uv[have], intr)
+        strikes, dynamic = dynamic_test(r, lm.strikes[ids], self.cfg.dynamic_scale_px,
+                                        self.cfg.dynamic_prob_max)
         lm.strikes[ids] = strikes
+        if self.cfg.drift_bound > 0:
+            lm.drift[ids], drifting = drift_test(r, lm.drift[ids], self.cfg.drift_noise_floor_px,
+                                                 self.cfg.drift_breakeven, self.cfg.drift_bound)
+            self.drops["tracks_flagged_drifting"] += lm.flag(ids[drifting & ~dynamic],
+                                                             LandmarkFlag.DYNAMIC)
+            dynamic = dynamic | drifting
         if dynamic.any():
             self.drops["tracks_flagged_dynamic"] += lm.flag(ids[dynamic], LandmarkFlag.DYNAMIC)
             self.tracker.remove(ids[dynamic])

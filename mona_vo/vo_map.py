@@ -70,12 +70,14 @@ def _grow(a: np.ndarray, n: int, fill) -> np.ndarray:
 
 class LandmarkTable:
     """Landmarks by track id. xyz: (C, 3) float64 world (NaN: none); flags: (C,) uint8;
-    strikes: (C,) uint8 consecutive dynamic-test failures."""
+    strikes: (C,) uint8 consecutive dynamic-test failures; drift: (C,) float32 the drift test's
+    running sum (:func:`mona_vo.vo_steps.drift_test`)."""
 
     def __init__(self):
         self.xyz = np.full((0, 3), np.nan)
         self.flags = np.zeros(0, np.uint8)
         self.strikes = np.zeros(0, np.uint8)
+        self.drift = np.zeros(0, np.float32)
 
     def _ensure(self, ids: np.ndarray) -> None:
         if len(ids):
@@ -83,6 +85,7 @@ class LandmarkTable:
             self.xyz = _grow(self.xyz, n, np.nan)
             self.flags = _grow(self.flags, n, 0)
             self.strikes = _grow(self.strikes, n, 0)
+            self.drift = _grow(self.drift, n, 0.0)
 
     def has_position(self, ids: np.ndarray) -> np.ndarray:
         """(N,) bool: triangulated (whatever its flags)."""

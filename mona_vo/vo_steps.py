@@ -92,18 +92,44 @@ def estimate_pose(P: np.ndarray, q: np.ndarray, intr: Intrinsics, T_guess: np.nd
     return ransac if ransac[0] is not None else (None, ransac[1])
 
 
-def dynamic_test(P: np.ndarray, q: np.ndarray, intr: Intrinsics, T_world_cam: np.ndarray,
-                 strikes: np.ndarray, scale_px: float, p_max: float
+def dynamic_test(residual_xy: np.ndarray, strikes: np.ndarray, scale_px: float, p_max: float
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Front-end dynamic test of tracks with landmarks: a static point's reprojection residual
-    follows a Cauchy law of scale ``scale_px`` (:func:`mona_vo.geometry.cauchy_dynamic_probability`);
-    p > p_max twice in a row and the track is dynamic. strikes: (N,) previous counts.
+    (``residual_xy``, (N, 2) px, :func:`mona_vo.geometry.reprojection_residuals`; NaN behind the
+    camera) follows a Cauchy law of scale ``scale_px``
+    (:func:`mona_vo.geometry.cauchy_dynamic_probability`); p > p_max twice in a row and the
+    track is dynamic. strikes: (N,) previous counts.
     Returns (new strikes (N,) uint8, dynamic (N,) bool)."""
-    r = reprojection_residuals(T_world_cam, P, q, intr)
+    r = np.array(residual_xy, np.float64).reshape(-1, 2)
     r[~np.isfinite(r).all(axis=1)] = np.inf
     p = cauchy_dynamic_probability(r, scale_px)
     new = np.where(p > p_max, np.minimum(strikes.astype(np.int64) + 1, 255), 0).astype(np.uint8)
     return new, new >= 2
+
+
+def drift_test(residual_xy: np.ndarray, evidence: np.ndarray, noise_floor_px: float, breakeven: float,
+               bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sequential test (CUSUM) of tracks whose reprojection residual stays above the frame's noise:
+    a mover slower than the gross test's few pixels, or one that keeps pace with the camera, is
+    re-triangulated at every keyframe and then drifts off its landmark by a fraction of a pixel
+    per frame, while its one-frame residual stays within the static points' tails.
+
+    residual_xy: (N, 2) reprojection residuals, px (NaN: behind the camera); evidence: (N,) the
+    tracks' running sums.
+    The frame's noise is ``sigma = max(noise_floor_px, 1.4826 median(r))`` (most tracks are
+    static); a frame adds the log-likelihood ratio ``0.5 (z^2 - breakeven^2)``, ``z = r /
+    sigma``, capped at ``bound / 2`` (a mistracked jump needs a second frame), and the sum
+    never falls below zero. Returns (new evidence (N,) float32, dynamic (N,) bool: sum >=
+    bound)."""
+    r = np.linalg.norm(np.asarray(residual_xy, np.float64).reshape(-1, 2), axis=1)
+    finite = np.isfinite(r)
+    sigma = noise_floor_px
+    if finite.any():
+        sigma = max(noise_floor_px, 1.4826 * float(np.median(r[finite])))
+    z2 = np.where(finite, (r / sigma) ** 2, np.inf)
+    llr = np.minimum(0.5 * (z2 - breakeven ** 2), 0.5 * bound)
+    new = np.maximum(np.asarray(evidence, np.float64) + llr, 0.0)
+    return new.astype(np.float32), new >= bound
 
 
 def keyframe_needed(*, gap: int, max_gap: int, parallax_px: float, parallax_min_px: float,

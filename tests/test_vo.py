@@ -313,3 +313,63 @@ def test_the_start_pair_check_drops_tracks_sliding_along_depth_edges():
     assert on.status[0] == "keyframe"    # the map still starts at the first frame
     e_on, e_off = direction_error(on.poses), direction_error(off.poses)
     assert e_on < 20.0 and e_on < 0.5 * e_off, (e_on, e_off)
+
+
+def test_the_drift_test_drops_tracks_that_leave_their_static_point_and_lowers_the_error(monkeypatch):
+    # A generated forward walk behind a car that keeps about the camera's pace (mixed seed 209,
+    # a tuning seed), no masks. Some tracks fit the static map within a pixel or two after each
+    # keyframe and then drift off it, never far enough for the two-strike test: the car's, and
+    # static-scene tracks that slide along an outline against the far background. The drift
+    # test (vo.drift_bound) drops them; measured: ATE 0.171 -> 0.088 % of path. What it drops
+    # is judged against the renderer: a track is inconsistent when its first observation,
+    # moved with the true depth and poses, lands more than 2 px from where it is tracked now.
+    from eval.metrics import Trajectory, evaluate_trajectory
+
+    scene = SyntheticScene(SceneConfig(width=640, height=272, n_frames=40, preset="mixed", seed=209))
+    rendered = list(scene)
+    images = [r.image for r in rendered]
+    t = np.arange(len(images), dtype=float)
+    G = scene.poses()
+    K = scene.intrinsics.K
+    first: dict[int, tuple[int, np.ndarray]] = {}
+    judged = {"drifting": [], "kept": []}
+    original = VisualOdometry._flag_dynamic
+
+    def off_static_point(k, ids, uv):
+        out = []
+        for i, q in zip(ids, uv):
+            k0, q0 = first[int(i)]
+            u = np.clip(np.rint(q0).astype(int), 0, [K[0, 2] * 2 - 1, K[1, 2] * 2 - 1]).astype(int)
+            X = np.linalg.solve(K, [q0[0], q0[1], 1.0]) * rendered[k0].depth[u[1], u[0]]
+            T = np.linalg.inv(G[k]) @ G[k0]
+            p = K @ (T[:3, :3] @ X + T[:3, 3])
+            out.append(np.hypot(*(p[:2] / p[2] - q)) > 2.0)
+        return out
+
+    def spy(self, obs, intr, T):
+        k = self.map.frames.n - 1
+        for i, q in zip(obs.ids, obs.uv):
+            first.setdefault(int(i), (k, q.copy()))
+        before = self.map.landmarks.flagged(obs.ids)
+        drifting_before = self.drops["tracks_flagged_drifting"]
+        original(self, obs, intr, T)
+        new = self.map.landmarks.flagged(obs.ids) & ~before
+        if self.drops["tracks_flagged_drifting"] > drifting_before:
+            judged["drifting"] += off_static_point(k, obs.ids[new], obs.uv[new])
+        if k % 5 == 0:
+            keep = ~self.map.landmarks.flagged(obs.ids)
+            judged["kept"] += off_static_point(k, obs.ids[keep], obs.uv[keep])
+
+    monkeypatch.setattr(VisualOdometry, "_flag_dynamic", spy)
+    _, on = _run(scene, images, None, drift_bound=12.0)
+    monkeypatch.setattr(VisualOdometry, "_flag_dynamic", original)
+    _, off = _run(scene, images, None, drift_bound=0.0)
+    assert on.drops["tracks_flagged_drifting"] >= 10
+    # The tracks it drops are far more often inconsistent with any static point than those kept.
+    # (measured: 37 of 40 dropped, 27 % of those kept -- the car's unflagged tracks among them)
+    assert np.mean(judged["drifting"]) > 0.75, judged["drifting"]
+    assert np.mean(judged["drifting"]) > 2 * np.mean(judged["kept"]), (
+        np.mean(judged["drifting"]), np.mean(judged["kept"]))
+    ate_on = evaluate_trajectory(Trajectory(t, G), Trajectory(t, on.poses)).ate_percent_of_path
+    ate_off = evaluate_trajectory(Trajectory(t, G), Trajectory(t, off.poses)).ate_percent_of_path
+    assert ate_on < 0.7 * ate_off, (ate_on, ate_off)

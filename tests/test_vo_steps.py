@@ -4,9 +4,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
-from mona_vo.geometry import cauchy_dynamic_probability, find_essential, reprojection_errors
+from mona_vo.geometry import (cauchy_dynamic_probability, find_essential, reprojection_errors,
+                              reprojection_residuals)
 from mona_vo.two_view import homography_parallax_px, normalize, relative_pose
-from mona_vo.vo_steps import (ParallaxEvidence, PoseSettings, dynamic_test, estimate_pose,
+from mona_vo.vo_steps import (ParallaxEvidence, PoseSettings, drift_test, dynamic_test, estimate_pose,
                               interpolate_pose, keyframe_needed, predict_pose,
                               rotation_free_parallax_px, triangulate_against)
 
@@ -66,10 +67,44 @@ def test_dynamic_test_needs_two_strikes_in_a_row():
     q[0] += 10.0    # far off its landmark: a mover
     q[1] += 0.5     # tracking noise
     strikes = np.array([0, 0, 0, 1, 1], np.uint8)
-    s1, dyn1 = dynamic_test(P, q, INTR, T, strikes, 1.44, 0.9)
+    r = reprojection_residuals(T, P, q, INTR)
+    s1, dyn1 = dynamic_test(r, strikes, 1.44, 0.9)
     assert s1.tolist() == [1, 0, 0, 0, 0] and not dyn1.any()
-    s2, dyn2 = dynamic_test(P, q, INTR, T, s1, 1.44, 0.9)
+    s2, dyn2 = dynamic_test(r, s1, 1.44, 0.9)
     assert dyn2.tolist() == [True, False, False, False, False]
+
+
+def test_drift_test_finds_a_slow_drift_that_the_gross_test_never_sees():
+    # 200 static tracks with 0.2 px tracking noise (Rayleigh, so the tails reach 0.8 px) and one
+    # track that drifts 0.25 px per frame from its landmark: after 12 frames it is 3 px off, which
+    # the two-strike Cauchy test (p > 0.9 at 3-4 px) has not flagged yet.
+    rng = np.random.default_rng(3)
+    evidence = np.zeros(201, np.float32)
+    first = None
+    for k in range(60):
+        r = rng.normal(0, 0.2, (201, 2))
+        r[0] = (0.25 * (k + 1), 0.0)
+        evidence, dynamic = drift_test(r, evidence, 0.3, 3.0, 12.0)
+        assert not dynamic[1:].any(), f"a static track was flagged at frame {k}"
+        if dynamic[0] and first is None:
+            first = k
+    assert first is not None and first <= 6
+    assert 0.25 * (first + 1) < 3.0                 # found before the gross test's reach
+    assert (evidence >= 0).all()
+
+
+def test_drift_test_needs_two_frames_for_a_jump_and_forgets_static_frames():
+    r_jump = np.array([[50.0, 0.0], [np.nan, np.nan], [0.3, 0], [0, 0.3], [0.3, 0]])
+    e1, d1 = drift_test(r_jump, np.zeros(5), 0.3, 3.0, 12.0)
+    assert not d1.any() and e1[0] == pytest.approx(6.0) and e1[1] == pytest.approx(6.0)
+    e2, d2 = drift_test(r_jump, e1, 0.3, 3.0, 12.0)
+    assert d2.tolist() == [True, True, False, False, False]
+    # A static frame after the jump takes the evidence back towards zero, never below it.
+    e3, _ = drift_test(np.full((5, 2), 0.2), e1, 0.3, 3.0, 12.0)
+    assert (e3[:2] < e1[:2]).all() and (e3[2:] == 0).all()
+    # The noise is the frame's: in a frame where every residual is 3x larger, nothing stands out.
+    e4, d4 = drift_test(np.full((5, 2), 2.0), np.zeros(5), 0.3, 3.0, 12.0)
+    assert not d4.any() and (e4 == 0).all()
 
 
 def test_keyframe_policy():
