@@ -52,10 +52,10 @@ from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose,
                               rotation_parallax_deg, translation_spread_deg, triangulate)
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissimilar_tracks,
-                              drift_test, dynamic_test, estimate_pose, interpolate_pose, keyframe_needed,
-                              predict_pose,
-                              refine_pose, rotation_free_parallax_px, triangulate_against,
-                              typical_speed, typical_velocity)
+                              drift_test, dynamic_test, estimate_pose, interpolate_pose,
+                              keyframe_needed, predict_pose, refine_pose,
+                              rotation_free_parallax_px, triangulate_against, typical_speed,
+                              typical_velocity)
 
 # Per-frame status strings (FrameStatus values), from most to least trustworthy.
 KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED = (

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose
-from mona_vo.geometry import cauchy_dynamic_probability, reprojection_errors, reprojection_residuals
+from mona_vo.geometry import cauchy_dynamic_probability, reprojection_errors
 from mona_vo.two_view import rotation_parallax_deg, triangulate
 
 
@@ -107,10 +107,10 @@ def dynamic_test(residual_xy: np.ndarray, strikes: np.ndarray, scale_px: float, 
     return new, new >= 2
 
 
-def drift_test(residual_xy: np.ndarray, evidence: np.ndarray, noise_floor_px: float, breakeven: float,
-               bound: float) -> tuple[np.ndarray, np.ndarray]:
-    """Sequential test (CUSUM) of tracks whose reprojection residual stays above the frame's noise:
-    a mover slower than the gross test's few pixels, or one that keeps pace with the camera, is
+def drift_test(residual_xy: np.ndarray, evidence: np.ndarray, noise_floor_px: float,
+               breakeven: float, bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sequential test (CUSUM) of tracks whose reprojection residual stays above the frame's
+    noise: a mover slower than the gross test's few pixels, or one that keeps pace with the camera, is
     re-triangulated at every keyframe and then drifts off its landmark by a fraction of a pixel
     per frame, while its one-frame residual stays within the static points' tails.
 

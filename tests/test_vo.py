@@ -339,8 +339,9 @@ def test_the_drift_test_drops_tracks_that_leave_their_static_point_and_lowers_th
         out = []
         for i, q in zip(ids, uv):
             k0, q0 = first[int(i)]
-            u = np.clip(np.rint(q0).astype(int), 0, [K[0, 2] * 2 - 1, K[1, 2] * 2 - 1]).astype(int)
-            X = np.linalg.solve(K, [q0[0], q0[1], 1.0]) * rendered[k0].depth[u[1], u[0]]
+            depth = rendered[k0].depth
+            u = np.clip(np.rint(q0).astype(int), 0, [depth.shape[1] - 1, depth.shape[0] - 1])
+            X = np.linalg.solve(K, [q0[0], q0[1], 1.0]) * depth[u[1], u[0]]
             T = np.linalg.inv(G[k]) @ G[k0]
             p = K @ (T[:3, :3] @ X + T[:3, 3])
             out.append(np.hypot(*(p[:2] / p[2] - q)) > 2.0)

@@ -7,8 +7,8 @@ from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
 from mona_vo.geometry import (cauchy_dynamic_probability, find_essential, reprojection_errors,
                               reprojection_residuals)
 from mona_vo.two_view import homography_parallax_px, normalize, relative_pose
-from mona_vo.vo_steps import (ParallaxEvidence, PoseSettings, drift_test, dynamic_test, estimate_pose,
-                              interpolate_pose, keyframe_needed, predict_pose,
+from mona_vo.vo_steps import (ParallaxEvidence, PoseSettings, drift_test, dynamic_test,
+                              estimate_pose, interpolate_pose, keyframe_needed, predict_pose,
                               rotation_free_parallax_px, triangulate_against)
 
 INTR = Intrinsics(500.0, 500.0, 320.0, 240.0)
