@@ -429,14 +429,15 @@ class VisualOdometry:
         strikes, dynamic = dynamic_test(r, lm.strikes[ids], self.cfg.dynamic_scale_px,
                                         self.cfg.dynamic_prob_max)
         lm.strikes[ids] = strikes
+        # The tracks tested are usable, so none is flagged yet: the counts are the new flags.
+        self.drops["tracks_flagged_dynamic"] += int(np.count_nonzero(dynamic))
         if self.cfg.drift_bound > 0:
             lm.drift[ids], drifting = drift_test(r, lm.drift[ids], self.cfg.drift_noise_floor_px,
                                                  self.cfg.drift_breakeven, self.cfg.drift_bound)
-            self.drops["tracks_flagged_drifting"] += lm.flag(ids[drifting & ~dynamic],
-                                                             LandmarkFlag.DYNAMIC)
+            self.drops["tracks_flagged_drifting"] += int(np.count_nonzero(drifting & ~dynamic))
             dynamic = dynamic | drifting
         if dynamic.any():
-            self.drops["tracks_flagged_dynamic"] += lm.flag(ids[dynamic], LandmarkFlag.DYNAMIC)
+            lm.flag(ids[dynamic], LandmarkFlag.DYNAMIC)
             self.tracker.remove(ids[dynamic])
 
     def _needs_keyframe(self, t, last: int, obs: Observation, intr, T) -> bool:
