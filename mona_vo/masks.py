@@ -547,6 +547,10 @@ class MonaMasker:
         dyn_sel = dyn.is_dynamic
         obs = mask_evidence.observe(mmap, motion_theta, mmap.shape, dyn.points[dyn_sel],
                                     dyn.residual[dyn_sel], self._size[0], ev, texture)
+        if ev.seeded_noise_factor > 0:
+            seeded = mask_evidence.seeded_regions(mmap, dyn.points[dyn_sel], self._size[0], ev,
+                                                  self.config.vo_max_coverage)
+            obs = np.where(seeded, np.maximum(obs, ev.point_gain), obs)
         if self._logodds is None or self._logodds.shape != mmap.shape:
             return mask_evidence.update(obs, obs, dataclasses.replace(ev, decay=0.999))
         carried = mask_evidence.carry(self._logodds, self._prev_flow, 0.0, ev)

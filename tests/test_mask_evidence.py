@@ -167,3 +167,20 @@ def test_bad_evidence_settings_fail_with_the_key():
         EvidenceConfig(decay=1.5).validate()
     with pytest.raises(ConfigError, match="grow"):
         EvidenceConfig(grow=4.0, seed=3.0).validate()
+
+
+def test_seeded_regions_grow_a_weak_mover_from_its_dynamic_points_only():
+    # A slow mover: 0.5 px/frame, far below theta but ten robust sigmas above the static floor.
+    rng = np.random.default_rng(0)
+    mmap = np.abs(rng.normal(0.0, 0.04, (H, W))).astype(np.float32) + 1e-3
+    mmap[10:20, 30:42] = 0.5
+    cfg = dataclasses.replace(CFG, seeded_noise_factor=6.0)
+    on_it = np.array([[33.0, 12.0], [38.0, 17.0]], np.float32)      # full res = map res here
+    grown = ev.seeded_regions(mmap, on_it, W, cfg)
+    assert grown[10:20, 30:42].all() and grown.sum() < 1.5 * 120
+    # One point is not enough; points on the static floor grow nothing; off by default.
+    assert not ev.seeded_regions(mmap, on_it[:1], W, cfg).any()
+    assert not ev.seeded_regions(mmap, np.array([[5.0, 30.0], [6.0, 31.0]]), W, cfg).any()
+    assert not ev.seeded_regions(mmap, on_it, W, CFG).any()
+    # A region larger than the share allowed is no object (rippling water, a flickering wall).
+    assert not ev.seeded_regions(mmap, on_it, W, cfg, max_share=0.02).any()
