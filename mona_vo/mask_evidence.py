@@ -130,6 +130,13 @@ def carry(logodds: np.ndarray, flow: np.ndarray | None, fill: float = 0.0,
     return forward_warp_values(L, flow, fill)
 
 
+def map_pixels(points: np.ndarray, full_width: int, map_width: int) -> np.ndarray:
+    """(N, 2) int64 map pixels (column, row) of (N, 2) full-resolution pixels x, y, the map
+    being ``map_width / full_width`` of the image (pixel centres at integers at both scales)."""
+    s = map_width / float(full_width)
+    return np.round((np.asarray(points, np.float64).reshape(-1, 2) + 0.5) * s - 0.5).astype(np.int64)
+
+
 def observe(motion_map: np.ndarray | None, theta: float, shape: tuple[int, int],
             points: np.ndarray, residual: np.ndarray, full_width: int,
             config: EvidenceConfig, texture: np.ndarray | None = None) -> np.ndarray:
@@ -156,16 +163,14 @@ def observe(motion_map: np.ndarray | None, theta: float, shape: tuple[int, int],
         out[valid] = obs[valid]
     pts = np.asarray(points, np.float64).reshape(-1, 2)
     if config.point_gain > 0 and len(pts):
-        s = w / float(full_width)
         rad = max(int(round(config.point_radius_frac * np.hypot(w, h))), 1)
         bump = np.zeros((h, w), np.float32)
         r = np.asarray(residual, np.float64).reshape(-1)
         gain = np.clip(2.0 * np.log(np.maximum(r, 1e-9) / (config.point_strength * max(theta, 1e-9))),
                        0.0, config.point_gain)
-        for (x, y), g in zip(pts, gain):
-            if np.isfinite(x) and np.isfinite(y) and g > 0:
-                c = (int(round((x + 0.5) * s - 0.5)), int(round((y + 0.5) * s - 0.5)))
-                cv2.circle(bump, c, rad, float(g), -1)
+        ok = np.isfinite(pts).all(axis=1) & (gain > 0)
+        for (cx, cy), g in zip(map_pixels(pts[ok], full_width, w), gain[ok]):
+            cv2.circle(bump, (int(cx), int(cy)), rad, float(g), -1)
         # Points add to the dense test where it says "static" too: a track judged over its
         # window sees motion along the epipolar lines that one frame pair does not.
         out = np.where(bump > 0, np.maximum(out, 0.0) + bump, out)
@@ -188,8 +193,7 @@ def seeded_regions(motion_map: np.ndarray, points: np.ndarray, full_width: int,
     floor = config.seeded_noise_factor * 1.4826 * float(np.median(mm[mm > 0]))
     n, labels = cv2.connectedComponents((mm > floor).astype(np.uint8), connectivity=8)
     h, w = mm.shape
-    s = w / float(full_width)
-    c = np.clip(np.round((pts + 0.5) * s - 0.5).astype(int), 0, [w - 1, h - 1])
+    c = np.clip(map_pixels(pts, full_width, w), 0, [w - 1, h - 1])
     hit = labels[c[:, 1], c[:, 0]]
     ids, counts = np.unique(hit[hit > 0], return_counts=True)
     ids = ids[counts >= config.seeded_min_points]
