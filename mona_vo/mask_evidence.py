@@ -191,7 +191,7 @@ def seeded_regions(motion_map: np.ndarray, points: np.ndarray, full_width: int,
     if config.seeded_noise_factor <= 0 or not len(pts) or not (mm > 0).any():
         return out
     floor = config.seeded_noise_factor * 1.4826 * float(np.median(mm[mm > 0]))
-    n, labels = cv2.connectedComponents((mm > floor).astype(np.uint8), connectivity=8)
+    _, labels = cv2.connectedComponents((mm > floor).astype(np.uint8), connectivity=8)
     h, w = mm.shape
     c = np.clip(map_pixels(pts, full_width, w), 0, [w - 1, h - 1])
     hit = labels[c[:, 1], c[:, 0]]
