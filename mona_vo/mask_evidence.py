@@ -177,20 +177,29 @@ def observe(motion_map: np.ndarray | None, theta: float, shape: tuple[int, int],
     return out
 
 
+def motion_spread(motion_map: np.ndarray) -> float:
+    """Robust spread of a motion map, px per frame: 1.4826 x the median of its observed
+    (non-zero) pixels, most of which are static; 0 when nothing was observed."""
+    mm = np.asarray(motion_map)
+    observed = mm[mm > 0]
+    return 1.4826 * float(np.median(observed)) if observed.size else 0.0
+
+
 def seeded_regions(motion_map: np.ndarray, points: np.ndarray, full_width: int,
-                   config: EvidenceConfig, max_share: float = 1.0) -> np.ndarray:
-    """(h, w) bool: the 8-connected components of ``motion_map > seeded_noise_factor x 1.4826
-    x median(motion_map > 0)`` (the map's own noise floor, not the frame's threshold) that hold
-    at least ``seeded_min_points`` of the dynamic ``points`` ((N, 2) full-resolution pixels);
-    nothing when off, without points, or when those components cover more than ``max_share``
-    of the map (no object is that large; a rippling or flickering background is)."""
+                   config: EvidenceConfig, spread_px: float, max_share: float = 1.0) -> np.ndarray:
+    """(h, w) bool: the 8-connected components of ``motion_map > seeded_noise_factor x
+    spread_px`` (``spread_px``: the map's :func:`motion_spread`, its own noise, not the frame's
+    threshold) that hold at least ``seeded_min_points`` of the dynamic ``points`` ((N, 2)
+    full-resolution pixels); nothing when off, without points, or when those components cover
+    more than ``max_share`` of the map (no object is that large; a rippling or flickering
+    background is)."""
     mm = np.asarray(motion_map, np.float32)
     out = np.zeros(mm.shape, bool)
     pts = np.asarray(points, np.float64).reshape(-1, 2)
     pts = pts[np.isfinite(pts).all(axis=1)]
-    if config.seeded_noise_factor <= 0 or not len(pts) or not (mm > 0).any():
+    if config.seeded_noise_factor <= 0 or not len(pts) or spread_px <= 0:
         return out
-    floor = config.seeded_noise_factor * 1.4826 * float(np.median(mm[mm > 0]))
+    floor = config.seeded_noise_factor * spread_px
     _, labels = cv2.connectedComponents((mm > floor).astype(np.uint8), connectivity=8)
     h, w = mm.shape
     c = np.clip(map_pixels(pts, full_width, w), 0, [w - 1, h - 1])

@@ -454,8 +454,9 @@ class MonaMasker:
         theta = adaptive_threshold(m_t, cfg.dynamic_points.alpha, cfg.dynamic_points.theta_min_px)
         theta = max(theta, dyn.theta_t)
         motion_theta = theta
+        spread = 0.0
         if mmap is not None and mmap.any():
-            spread = 1.4826 * float(np.median(mmap[mmap > 0]))
+            spread = mask_evidence.motion_spread(mmap)
             motion_theta = max(theta, cfg.dynamic_points.noise_factor * spread)
         dyn_xy = dyn.dynamic_points
         carried_prev = None
@@ -471,7 +472,7 @@ class MonaMasker:
                 h, w = mmap.shape
                 small = cv2.resize(to_gray(image), (w, h), interpolation=cv2.INTER_AREA)
                 texture = texture_score(small, "min_eigen")
-            logodds = self._accumulate(mmap, motion_theta, dyn, texture)
+            logodds = self._accumulate(mmap, motion_theta, spread, dyn, texture)
             follow = None
             if self._found is not None and self._prev_flow is not None and self._found.any():
                 follow = forward_warp_mask(self._found, self._prev_flow)
@@ -537,10 +538,11 @@ class MonaMasker:
             np.isfinite(stability) and stability < cfg.vo_min_stability)
         return stability, bool(reliable)
 
-    def _accumulate(self, mmap: np.ndarray, motion_theta: float, dyn: DynamicPoints,
-                    texture: np.ndarray | None) -> np.ndarray:
+    def _accumulate(self, mmap: np.ndarray, motion_theta: float, spread: float,
+                    dyn: DynamicPoints, texture: np.ndarray | None) -> np.ndarray:
         """This frame's log-odds map: the last one carried along the flow, decayed, plus this
-        frame's observation (:mod:`mona_vo.mask_evidence`). The first frame counts its
+        frame's observation (:mod:`mona_vo.mask_evidence`; ``spread``: the map's
+        :func:`~mona_vo.mask_evidence.motion_spread`). The first frame counts its
         observation twice (as if seen one frame before): a mover in view from the start is
         found there, a one-frame spike still is not (obs_max x 2 stays below clamp_hi)."""
         ev = self.config.evidence
@@ -549,7 +551,7 @@ class MonaMasker:
                                     dyn.residual[dyn_sel], self._size[0], ev, texture)
         if ev.seeded_noise_factor > 0:
             seeded = mask_evidence.seeded_regions(mmap, dyn.points[dyn_sel], self._size[0], ev,
-                                                  self.config.vo_max_coverage)
+                                                  spread, self.config.vo_max_coverage)
             obs = np.where(seeded, np.maximum(obs, ev.point_gain), obs)
         if self._logodds is None or self._logodds.shape != mmap.shape:
             return mask_evidence.update(obs, obs, dataclasses.replace(ev, decay=0.999))

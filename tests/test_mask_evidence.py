@@ -176,11 +176,12 @@ def test_seeded_regions_grow_a_weak_mover_from_its_dynamic_points_only():
     mmap[10:20, 30:42] = 0.5
     cfg = dataclasses.replace(CFG, seeded_noise_factor=6.0)
     on_it = np.array([[33.0, 12.0], [38.0, 17.0]], np.float32)      # full res = map res here
-    grown = ev.seeded_regions(mmap, on_it, W, cfg)
+    spread = ev.motion_spread(mmap)
+    grown = ev.seeded_regions(mmap, on_it, W, cfg, spread)
     assert grown[10:20, 30:42].all() and grown.sum() < 1.5 * 120
     # One point is not enough; points on the static floor grow nothing; off by default.
-    assert not ev.seeded_regions(mmap, on_it[:1], W, cfg).any()
-    assert not ev.seeded_regions(mmap, np.array([[5.0, 30.0], [6.0, 31.0]]), W, cfg).any()
-    assert not ev.seeded_regions(mmap, on_it, W, CFG).any()
+    assert not ev.seeded_regions(mmap, on_it[:1], W, cfg, spread).any()
+    assert not ev.seeded_regions(mmap, np.array([[5.0, 30.0], [6.0, 31.0]]), W, cfg, spread).any()
+    assert not ev.seeded_regions(mmap, on_it, W, CFG, spread).any()
     # A region larger than the share allowed is no object (rippling water, a flickering wall).
-    assert not ev.seeded_regions(mmap, on_it, W, cfg, max_share=0.02).any()
+    assert not ev.seeded_regions(mmap, on_it, W, cfg, spread, max_share=0.02).any()
