@@ -55,7 +55,7 @@ from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissi
                               drift_test, dynamic_test, estimate_pose, interpolate_pose,
                               keyframe_needed, predict_pose, refine_pose,
                               rotation_free_parallax_px, triangulate_against, typical_speed,
-                              typical_velocity)
+                              typical_velocity, walk_back)
 
 # Per-frame status strings (FrameStatus values), from most to least trustworthy.
 KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED = (
@@ -115,7 +115,8 @@ class VOConfig:
                                             # distance to the next one
     reinit_speed_keyframes: int = setting(20, ge=1)  # a map started after tracking was lost
                                             # continues the median speed of the last map's last
-                                            # this many keyframe steps
+                                            # this many keyframe steps; frames before the first
+                                            # map walk back along its first this many
     pnp_threshold_px: float = setting(2.0, gt=0)  # RANSAC inlier threshold for per-frame poses, px
     pnp_min_inliers: int = setting(12, ge=4)  # fewer PnP inliers means tracking is lost
     pnp_guided_px: float = setting(6.0, ge=0)  # points this close to the constant-velocity
@@ -302,6 +303,7 @@ class VisualOdometry:
         refine = {}
         if self.cfg.refine == "global" and self.map.keyframes.n >= 2:
             refine = self._refine_global()
+        self._walk_back_start()
         n = fr.n
         poses = self.map.all_poses()
         kf = self.map.keyframes
@@ -316,6 +318,38 @@ class VisualOdometry:
         return VOResult(fr.timestamp[:n].copy(), poses, iskf, status, fr.inliers[:n].copy(),
                         dict(self.timings), dict(self.drops), float(focal), pts.reshape(-1, 3),
                         self.evidence.as_dict(TRANSLATION_RATIO, built), float(self._rmse), refine)
+
+    def _walk_back_start(self) -> int:
+        """Frames before the first map that kept their rotation alone (the start waited for
+        parallax, and they lost their tracks to the turn before it came) get a translation:
+        the first map's body velocity, walked back from the first frame posed on it. Their
+        rotation was measured; leaving them where the map starts put the whole distance they
+        covered into the error (generated fast turn, mixed 203: nine frames at 0.08 m each).
+        A camera that only turned builds no map and is not touched; one whose first steps
+        point every way (shaking in place) has no velocity to carry (typical_velocity).
+        Returns the number of frames filled in (status extrapolated)."""
+        kf, fr = self.map.keyframes, self.map.frames
+        rows = np.flatnonzero(kf.segment[:kf.n] == 0)[:self.cfg.reinit_speed_keyframes + 1]
+        if len(rows) < 2:
+            return 0
+        velocity = typical_velocity(kf.frame[rows], kf.T_world_cam[rows], len(rows) - 1)
+        if velocity is None:
+            return 0
+        poses = self.map.all_poses()
+        filled = 0
+        t = int(kf.frame[rows[0]])
+        while t > 0:
+            end = t
+            while t > 0 and fr.status_of(t - 1) is FrameStatus.ROTATION_ONLY:
+                t -= 1
+            if t < end:
+                for u, T in zip(range(t, end), walk_back(poses[end], poses[t:end, :3, :3], velocity)):
+                    fr.walk_back(u, T)
+                    poses[u] = T
+                filled += end - t
+            else:
+                t -= 1
+        return filled
 
     # ----------------------------------------------------------------- small helpers
     def _write_absolute(self, t, status: FrameStatus, inliers: int, T_world_cam) -> None:

@@ -237,6 +237,22 @@ def typical_velocity(frames: np.ndarray, T_world_cam: np.ndarray, recent: int
     return speed * mean / np.linalg.norm(mean)
 
 
+def walk_back(T_first: np.ndarray, R_world_cam: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    """Poses of the frames before a map's first keyframe, given their measured rotations
+    ((N, 3, 3) world-from-camera, in time order, the last one the frame just before the
+    keyframe) and the map's first body velocity (:func:`typical_velocity`): each frame is one
+    step of ``velocity``, in its own axes, behind the next, ending at ``T_first``'s centre.
+    Returns (N, 4, 4) T_world_cam with those rotations."""
+    R = np.asarray(R_world_cam, np.float64)
+    n = len(R)
+    out = np.zeros((n, 4, 4))
+    c = np.asarray(T_first, np.float64)[:3, 3].copy()
+    for i in range(n - 1, -1, -1):
+        c = c - R[i] @ velocity
+        out[i] = make_pose(R[i], c)
+    return out
+
+
 def interpolate_pose(Ta: np.ndarray, Tb: np.ndarray, a: float) -> np.ndarray:
     """Pose a of the way from Ta to Tb (rotation by slerp, centre linearly)."""
     R = Slerp([0, 1], Rotation.from_matrix([Ta[:3, :3], Tb[:3, :3]]))(a).as_matrix()

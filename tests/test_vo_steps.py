@@ -332,3 +332,21 @@ def test_dissimilar_tracks_flags_the_sliding_junction_relative_to_the_median():
     assert bad[-2:].all() and not bad[:-2].any()
     # Too few tracks to know what is usual: nothing is flagged.
     assert not dissimilar_tracks(before, uv[-5:], after, uv[-5:], np.eye(3), 4, 5.0).any()
+
+
+def test_walk_back_puts_the_frames_before_a_map_on_the_walk_that_led_to_it():
+    from mona_vo.vo_steps import typical_velocity, walk_back
+
+    # A camera walking 0.08 per frame along its own optical axis while it turns 4 deg per
+    # frame; the map starts at frame 9, frames 0-8 have their rotations only.
+    poses, c = [], np.zeros(3)
+    for t in range(16):
+        R = Rotation.from_euler("y", 4 * t, degrees=True).as_matrix()
+        poses.append(make_pose(R, c))
+        c = c + R @ np.array([0.0, 0.0, 0.08])
+    poses = np.stack(poses)
+    v = typical_velocity(np.arange(9, 16), poses[9:], recent=20)
+    back = walk_back(poses[9], poses[:9, :3, :3], v)
+    np.testing.assert_allclose(back, poses[:9], atol=1e-9)
+    # Left at the map's start instead (no translation), the first frame is 0.7 away.
+    assert np.linalg.norm(poses[0, :3, 3] - poses[9, :3, 3]) > 0.7
