@@ -259,12 +259,12 @@ class FrameTable:
         self.T[t] = np.linalg.solve(T_world_kf, self.T[t])
         self.ref_kf[t] = ref_kf
 
-    def walk_back(self, t: int, T_world_cam: np.ndarray) -> None:
+    def backfill(self, t: int, T_world_cam: np.ndarray) -> None:
         """Frame t, written rotation-only before the first map, gets the translation the map's
         first velocity gives it (:func:`mona_vo.vo_steps.walk_back`): status extrapolated,
         pose absolute. The only rewrite of a status the table allows."""
         if self.status[t] != _STATUS_LIST.index(FrameStatus.ROTATION_ONLY):
-            raise RuntimeError(f"frame {t}: only a rotation-only frame can be walked back")
+            raise RuntimeError(f"frame {t}: only a rotation-only frame can be backfilled")
         self.status[t] = _STATUS_LIST.index(FrameStatus.EXTRAPOLATED)
         self.ref_kf[t], self.T[t] = -1, T_world_cam
 

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose
 from mona_vo.geometry import cauchy_dynamic_probability, reprojection_errors
-from mona_vo.two_view import rotation_parallax_deg, triangulate
+from mona_vo.two_view import pixel_homography, rotation_parallax_deg, triangulate
 
 
 @dataclass(frozen=True)
@@ -194,6 +194,43 @@ def triangulate_against(views, ids: np.ndarray, uv: np.ndarray, intr: Intrinsics
     if not out_ids:
         return np.zeros(0, np.int64), np.zeros((0, 3))
     return np.concatenate(out_ids), np.concatenate(out_X)
+
+
+def pair_matches(gray_a: np.ndarray, gray_b: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray,
+                 mask_a: np.ndarray | None, mask_b: np.ndarray | None, n_points: int,
+                 fb_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """More matches between the two frames of a start pair than the (N, 2) tracks uv_a, uv_b
+    they share: up to ``n_points`` Shi-Tomasi corners of frame a outside its mask, found in
+    frame b by pyramidal Lucas-Kanade started where the homography of the shared tracks puts
+    them, kept when tracking them back lands within ``fb_px`` of where they started and they
+    fall inside frame b, outside its mask. Returns (K, 2) float64 pixels in a and b (K may be
+    0)."""
+    empty = (np.zeros((0, 2)), np.zeros((0, 2)))
+    h, w = gray_a.shape
+    if n_points <= 0 or len(uv_a) < 8:
+        return empty
+    H, _ = pixel_homography(uv_a, uv_b)
+    if H is None:
+        return empty
+    allowed = None if mask_a is None else (~np.asarray(mask_a, bool)).astype(np.uint8) * 255
+    corners = cv2.goodFeaturesToTrack(gray_a, n_points, 0.005, max(3.0, 0.008 * w), mask=allowed)
+    if corners is None:
+        return empty
+    pa = corners.reshape(-1, 1, 2).astype(np.float32)
+    guess = cv2.perspectiveTransform(pa, H).astype(np.float32)
+    lk = dict(winSize=(21, 21), maxLevel=3,
+              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    pb, st, _ = cv2.calcOpticalFlowPyrLK(gray_a, gray_b, pa, guess.copy(),
+                                         flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(gray_b, gray_a, pb, pa.copy(),
+                                            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+    pa, pb, back = pa.reshape(-1, 2), pb.reshape(-1, 2), back.reshape(-1, 2)
+    ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - pa, axis=1) < fb_px)
+    ok &= (pb[:, 0] >= 0) & (pb[:, 0] <= w - 1) & (pb[:, 1] >= 0) & (pb[:, 1] <= h - 1)
+    if mask_b is not None:
+        ij = np.round(pb[ok]).astype(int)
+        ok[np.flatnonzero(ok)[np.asarray(mask_b, bool)[ij[:, 1], ij[:, 0]]]] = False
+    return pa[ok].astype(np.float64), pb[ok].astype(np.float64)
 
 
 def typical_speed(frames: np.ndarray, positions: np.ndarray, recent: int) -> float | None:

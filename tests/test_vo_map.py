@@ -100,17 +100,17 @@ def test_frame_observations_come_back_grouped_by_frame_and_a_reposed_frame_keeps
         m.frames.repose(1, moved)        # absolute poses are not re-posed
 
 
-def test_only_a_rotation_only_frame_can_be_walked_back_and_it_becomes_extrapolated():
+def test_only_a_rotation_only_frame_can_be_backfilled_and_it_becomes_extrapolated():
     m = VOMap()
     for t in range(2):
         m.frames.append(float(t))
     m.frames.write(0, FrameStatus.ROTATION_ONLY, 0, T=np.eye(4))
     m.frames.write(1, FrameStatus.TRACKED, 30, T=np.eye(4))
     T = make_pose(np.eye(3), [0.0, 0.0, -0.3])
-    m.frames.walk_back(0, T)
+    m.frames.backfill(0, T)
     assert m.frames.status_of(0) is FrameStatus.EXTRAPOLATED
     np.testing.assert_allclose(m.pose_of(0), T)
     with pytest.raises(RuntimeError, match="rotation-only"):
-        m.frames.walk_back(1, T)
+        m.frames.backfill(1, T)
     with pytest.raises(RuntimeError, match="rotation-only"):
-        m.frames.walk_back(0, T)       # once only
+        m.frames.backfill(0, T)       # once only

@@ -230,20 +230,23 @@ def test_typical_speed_is_the_median_step_per_frame_of_the_last_keyframes():
     assert typical_speed(frames[:1], positions[:1], recent=20) is None
 
 
-def test_typical_velocity_is_the_forward_step_of_a_turning_walk_and_none_for_a_shake():
-    from scipy.spatial.transform import Rotation
+def _turning_walk(n, deg_per_step, step):
+    """(n, 4, 4) poses of a camera that steps ``step`` along its own optical axis and turns
+    ``deg_per_step`` about y between consecutive poses."""
+    poses, c = [], np.zeros(3)
+    for k in range(n):
+        R = Rotation.from_euler("y", deg_per_step * k, degrees=True).as_matrix()
+        poses.append(make_pose(R, c))
+        c = c + R @ np.array([0.0, 0.0, step])
+    return np.stack(poses)
 
-    from mona_vo.conventions import make_pose
+
+def test_typical_velocity_is_the_forward_step_of_a_turning_walk_and_none_for_a_shake():
     from mona_vo.vo_steps import typical_velocity
 
     # A camera walking 0.1 per frame along its own optical axis while it turns 10 deg per
     # keyframe (every 2 frames): in world axes the steps point every way, in its own the same.
-    poses, c = [], np.zeros(3)
-    for k in range(8):
-        R = Rotation.from_euler("y", 10 * k, degrees=True).as_matrix()
-        poses.append(make_pose(R, c))
-        c = c + R @ np.array([0.0, 0.0, 0.2])
-    v = typical_velocity(np.arange(0, 16, 2), np.stack(poses), recent=20)
+    v = typical_velocity(np.arange(0, 16, 2), _turning_walk(8, 10.0, 0.2), recent=20)
     assert v == pytest.approx([0.0, 0.0, 0.1], abs=1e-9)
     # Shaking left and right about one place: no direction to carry.
     shake = np.stack([make_pose(np.eye(3), [0.01 * (-1) ** k, 0, 0]) for k in range(8)])
@@ -339,14 +342,36 @@ def test_walk_back_puts_the_frames_before_a_map_on_the_walk_that_led_to_it():
 
     # A camera walking 0.08 per frame along its own optical axis while it turns 4 deg per
     # frame; the map starts at frame 9, frames 0-8 have their rotations only.
-    poses, c = [], np.zeros(3)
-    for t in range(16):
-        R = Rotation.from_euler("y", 4 * t, degrees=True).as_matrix()
-        poses.append(make_pose(R, c))
-        c = c + R @ np.array([0.0, 0.0, 0.08])
-    poses = np.stack(poses)
+    poses = _turning_walk(16, 4.0, 0.08)
     v = typical_velocity(np.arange(9, 16), poses[9:], recent=20)
     back = walk_back(poses[9], poses[:9, :3, :3], v)
     np.testing.assert_allclose(back, poses[:9], atol=1e-9)
     # Left at the map's start instead (no translation), the first frame is 0.7 away.
     assert np.linalg.norm(poses[0, :3, 3] - poses[9, :3, 3]) > 0.7
+
+
+def test_pair_matches_finds_many_more_matches_that_follow_the_true_motion_outside_the_masks():
+    import cv2
+
+    from mona_vo.vo_steps import pair_matches
+
+    rng = np.random.default_rng(3)
+    a = cv2.GaussianBlur(rng.uniform(0, 255, (240, 320)).astype(np.float32), (0, 0), 2.0)
+    a = cv2.normalize(a, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    shift = np.array([6.5, -3.25])
+    M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+    b = cv2.warpAffine(a, M, (320, 240), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    uv_a = rng.uniform(40, 200, (20, 2))
+    uv_b = uv_a + shift
+    mask_a = np.zeros((240, 320), bool)
+    mask_a[:, :80] = True                      # a mover on the left of frame a
+    mask_b = np.zeros((240, 320), bool)
+    mask_b[180:, :] = True                     # another at the bottom of frame b
+    ua, ub = pair_matches(a, b, uv_a, uv_b, mask_a, mask_b, 500, 0.5)
+    assert len(ua) > 5 * len(uv_a)
+    inner = (ua[:, 0] > 30) & (ua[:, 0] < 280) & (ua[:, 1] > 30) & (ua[:, 1] < 200)
+    np.testing.assert_allclose(ub[inner] - ua[inner], np.tile(shift, (inner.sum(), 1)), atol=0.15)
+    assert np.all(ua[:, 0] >= 80) and np.all(ub[:, 1] < 180)
+    # Too few shared tracks for a homography, or asked for none: nothing.
+    assert len(pair_matches(a, b, uv_a[:5], uv_b[:5], None, None, 500, 0.5)[0]) == 0
+    assert len(pair_matches(a, b, uv_a, uv_b, None, None, 0, 0.5)[0]) == 0
