@@ -92,10 +92,13 @@ class VOConfig:
                                             # Off: 45 lowered the tuning fast turns (mean 3.8
                                             # -> 2.4 % of path, true masks) but raised the
                                             # validation 'mixed' seeds (0.60 -> 1.11 %)
-    init_dense_points: int = setting(1000, ge=0)  # the start pair's pose is fitted again on
+    init_dense_points: int = setting(0, ge=0)  # the start pair's pose is fitted again on
                                             # up to this many corners of its first frame
                                             # matched into the second (vo_steps.pair_matches)
-                                            # and kept when it explains them better (0: off)
+                                            # and kept when it explains them better (0: off,
+                                            # the default: on the central-claim scene it helps
+                                            # the run without masks more than those with them,
+                                            # which then fall 18 % behind it; README)
     init_dense_fb_px: float = setting(0.5, gt=0)  # those matches must track back within this, px
     init_drop_dissimilar: bool = setting(False)  # the keyframes' patch dissimilarity check
                                             # (patch_dissimilarity) on the start pair too, once
