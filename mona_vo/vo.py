@@ -331,10 +331,11 @@ class VisualOdometry:
 
     def _walk_back_start(self) -> int:
         """Frames before the first map that kept their rotation alone (the start waited for
-        parallax, and they lost their tracks to the turn before it came) get a translation:
-        the first map's body velocity, walked back from the first frame posed on it. Their
-        rotation was measured; leaving them where the map starts put the whole distance they
-        covered into the error (generated fast turn, mixed 203: nine frames at 0.08 m each).
+        parallax, and their tracks were gone before it came, or they had nothing to track)
+        get a translation: the first map's body velocity, walked back from the first frame
+        posed on it. Left where the map starts, the whole distance they covered went into the
+        error (generated fast turn, mixed 203, opening on a blank wall: nine frames at 0.08 m
+        each).
         A camera that only turned builds no map and is not touched; one whose first steps
         point every way (shaking in place) has no velocity to carry (typical_velocity).
         Returns the number of frames filled in (status extrapolated)."""
