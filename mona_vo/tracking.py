@@ -78,6 +78,25 @@ def exposure_gain(prev_map: np.ndarray, now_map: np.ndarray, pts_prev: np.ndarra
     return float(np.median(b[ok] / a[ok]))
 
 
+def track_forward_backward(prev: np.ndarray, nxt: np.ndarray, pts: np.ndarray, guess: np.ndarray,
+                           win: tuple[int, int], levels: int, criteria: tuple
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pyramidal Lucas-Kanade of the (N, 2) ``pts`` of ``prev`` into ``nxt``, started at
+    ``guess``, and back again (started where they landed). Returns their (N, 2) float32
+    positions in ``nxt``, (N,) bool found both ways, and (N,) float32 distance from where the
+    backward track lands to where it started (px): what a tracker's forward-backward check
+    compares with its bound."""
+    p0 = np.asarray(pts, np.float32).reshape(-1, 1, 2)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, nxt, p0, np.asarray(guess, np.float32).reshape(-1, 1, 2),
+                                          winSize=win, maxLevel=levels, criteria=criteria,
+                                          flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(nxt, prev, p1, None, winSize=win, maxLevel=levels,
+                                           criteria=criteria)
+    p1 = p1.reshape(-1, 2)
+    fb = np.linalg.norm(p0b.reshape(-1, 2) - p0.reshape(-1, 2), axis=1).astype(np.float32)
+    return p1, (st1.ravel() == 1) & (st2.ravel() == 1), fb
+
+
 class Tracker(ABC):
     """Frame-to-frame point tracker with persistent track ids."""
 
@@ -175,17 +194,12 @@ class LKTracker(Tracker):
                 pyr = cv2.convertScaleAbs(gray, alpha=1.0 / g)
             elif g < 1.0 - self.GAIN_TOLERANCE:
                 prev = cv2.convertScaleAbs(prev, alpha=g)
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, pyr, p0, guess, winSize=self.win,
-                                              maxLevel=self.levels, criteria=self.criteria,
-                                              flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, prev, p1, None, winSize=self.win,
-                                               maxLevel=self.levels, criteria=self.criteria)
-        p1 = p1.reshape(-1, 2)
-        fb = np.linalg.norm(p0b.reshape(-1, 2) - self._pts, axis=1).astype(np.float32)
+        p1, found, fb = track_forward_backward(prev, pyr, p0, guess, self.win, self.levels,
+                                               self.criteria)
         h, w = gray.shape
         b = self.border_px
         inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
-        ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= self.fb_max_px) & inside
+        ok = found & (fb <= self.fb_max_px) & inside
         ok &= np.isfinite(p1).all(axis=1)
         update = TrackUpdate(self._ids.copy(), p1.astype(np.float32), ok, fb)
         self._vel = (p1 - self._pts)[ok].astype(np.float32)

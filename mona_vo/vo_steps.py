@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose
 from mona_vo.geometry import cauchy_dynamic_probability, reprojection_errors
+from mona_vo.tracking import LKTracker, track_forward_backward
 from mona_vo.two_view import pixel_homography, rotation_parallax_deg, triangulate
 
 
@@ -217,15 +218,11 @@ def pair_matches(gray_a: np.ndarray, gray_b: np.ndarray, uv_a: np.ndarray, uv_b:
     if corners is None:
         return empty
     pa = corners.reshape(-1, 1, 2).astype(np.float32)
-    guess = cv2.perspectiveTransform(pa, H).astype(np.float32)
-    lk = dict(winSize=(21, 21), maxLevel=3,
-              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-    pb, st, _ = cv2.calcOpticalFlowPyrLK(gray_a, gray_b, pa, guess.copy(),
-                                         flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(gray_b, gray_a, pb, pa.copy(),
-                                            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-    pa, pb, back = pa.reshape(-1, 2), pb.reshape(-1, 2), back.reshape(-1, 2)
-    ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - pa, axis=1) < fb_px)
+    guess = cv2.perspectiveTransform(pa, H)
+    lk = LKTracker()   # the VO tracker's Lucas-Kanade settings
+    pb, found, fb = track_forward_backward(gray_a, gray_b, pa, guess, lk.win, lk.levels, lk.criteria)
+    pa = pa.reshape(-1, 2)
+    ok = found & (fb < fb_px) & np.isfinite(pb).all(axis=1)
     ok &= (pb[:, 0] >= 0) & (pb[:, 0] <= w - 1) & (pb[:, 1] >= 0) & (pb[:, 1] <= h - 1)
     if mask_b is not None:
         ij = np.round(pb[ok]).astype(int)

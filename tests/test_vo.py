@@ -168,9 +168,9 @@ def test_frames_where_tracking_is_lost_carry_the_walk_on_until_a_new_map():
 
 
 def test_frames_before_the_first_map_walk_back_along_its_first_velocity(monkeypatch):
-    """Generated 'mixed' seed 203 (a tuning seed): a fast turn while walking, 0.08 m per frame.
-    The start waits for parallax until frame 9; frames 0-8 lose their tracks to the turn and
-    keep their rotation alone. Left where the map starts, they put 0.7 m of walk into the
+    """Generated 'mixed' seed 203 (a tuning seed): a fast turn while walking, 0.08 m per frame,
+    opening on a near-blank wall. The start waits until frame 9; frames 0-8 have almost nothing
+    to track and keep their rotation alone. Left where the map starts, they put 0.7 m of walk into the
     error (ATE 6.0 % of path with true masks); walked back along the map's first body velocity,
     2.2 %."""
     from eval.metrics import Trajectory, evaluate_trajectory
