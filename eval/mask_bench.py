@@ -8,7 +8,9 @@ Library functions return plain rows (lists of dicts); only ``python -m eval.mask
   false-positive area (mask pixels outside the GT mask, fraction of the image); presets without
   movers ('static') are judged by the false-positive area.
 * :func:`davis_rows`: DAVIS J and F (all frames, :func:`eval.mask_metrics.evaluate_mask_sequence`)
-  per sequence and prompt mode ('boxes', 'points', 'raw-boxes').
+  per sequence and prompt mode ('boxes', 'points', 'raw-boxes'), and 'gt-boxes': the segmenter
+  alone, prompted with the boxes of the true mask's parts (:func:`gt_box_masks`), what the
+  segmentation stage reaches when detection and filter are perfect.
 * :func:`speed_rows`: wall-clock seconds per frame of each stage (``MaskFrame.seconds``) on a
   1024 x 436 input (the real Sintel clip when present, else a generated scene; decoding and
   rendering are not timed).
@@ -93,6 +95,26 @@ DAVIS_VALIDATE = ("blackswan", "cows", "goat", "scooter-black")    # never tuned
 DAVIS_ROOTS = ("davis2016", "davis2016_more")                       # shared folders, same layout
 
 
+def gt_box_masks(images: Iterable[np.ndarray], gts: Iterable[np.ndarray],
+                 config: MaskConfig, device: str = "cpu") -> list[np.ndarray]:
+    """Masks of ``config``'s segmenter prompted with one box per 8-connected part of each true
+    mask (parts under 0.1 % of the image dropped), without the masker's motion context: the
+    detector and the box filter replaced by the truth."""
+    from mona_vo.detection import Boxes, mask_to_boxes
+    from mona_vo.masks import SEGMENTERS, _build
+
+    segmenter = _build(SEGMENTERS, config.segmenter,
+                       config.grabcut if config.segmenter == "grabcut" else None, device,
+                       config.segmenter_checkpoint)
+    out = []
+    for image, gt in zip(images, gts):
+        gt = np.asarray(gt, bool)
+        xyxy, _ = mask_to_boxes(gt, max(1, int(0.001 * gt.size)))
+        out.append(segmenter.segment(image, Boxes.from_arrays(xyxy)) if len(xyxy)
+                   else np.zeros(gt.shape, bool))
+    return out
+
+
 def davis_root_of(sequence: str, data: str | Path | None = None) -> Path:
     """The shared DAVIS folder holding ``sequence`` (the first of :data:`DAVIS_ROOTS`)."""
     data = Path(data) if data is not None else SHARED_DATA
@@ -130,12 +152,18 @@ def davis_rows(root: str | Path | None = None,
             _, _, intrinsics = camera_ahead(head, pipeline, head.width, head.height)
             extra = {"focal_px": float(intrinsics.fx)}
         for mode in modes:
-            cfg = dataclasses.replace(config, prompt=mode)
-            frames = ((f.index, f.image) for f in ds.frames(max_frames=max_frames))
             t0 = time.perf_counter()
-            preds = [out.mask for out in _masks(frames, cfg, intrinsics)]
+            if mode == "gt-boxes":
+                images = [f.image for f in ds.frames(max_frames=max_frames)]
+                gts = [m for m, _ in zip(ds.masks(), images)]
+                preds = gt_box_masks(images, gts, config,
+                                     pipeline.device if pipeline is not None else "cpu")
+            else:
+                frames = ((f.index, f.image) for f in ds.frames(max_frames=max_frames))
+                preds = [out.mask for out in
+                         _masks(frames, dataclasses.replace(config, prompt=mode), intrinsics)]
+                gts = [m for m, _ in zip(ds.masks(), preds)]
             sec = (time.perf_counter() - t0) / max(len(preds), 1)
-            gts = [m for m, _ in zip(ds.masks(), preds)]
             metrics = evaluate_mask_sequence(preds, gts)
             split = "tune" if seq in DAVIS_TUNE else "validate" if seq in DAVIS_VALIDATE else "-"
             rows.append({"sequence": seq, "split": split, "prompt": mode,
@@ -226,7 +254,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--seeds", default="0,1,2", help="synthetic scene seeds, e.g. 0,1,2 or 100-111")
     parser.add_argument("--frames", type=int, default=30, help="frames per synthetic scene")
     parser.add_argument("--size", default="1024x436", help="synthetic image size WxH")
-    parser.add_argument("--modes", default="boxes", help="DAVIS prompt modes: boxes,points,raw-boxes")
+    parser.add_argument("--modes", default="boxes", help="DAVIS prompt modes: boxes,points,raw-boxes,gt-boxes")
     parser.add_argument("--calib", choices=("guess", "estimate"), default="estimate",
                         help="DAVIS: the masker's camera, the focal length `mona-vo masks` and "
                              "`run` estimate (default) or the 60-degree field-of-view guess")

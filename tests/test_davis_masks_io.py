@@ -109,3 +109,24 @@ def test_mask_bench_davis_with_the_focal_length_run_estimates(shared_subdir):
     assert "focal_px" not in guess
     assert 500 < est["focal_px"] < 0.95 * 739.6
     assert 0.0 <= est["J"] <= 1.0 and est["frames"] == 6
+
+
+def test_gt_box_prompts_measure_the_segmenter_alone():
+    """`--modes gt-boxes`: the segmenter prompted with the true mask's part boxes. A flat disk on
+    a textured ground is cut out from its box (IoU > 0.75; the segmenter dilates its masks by a few pixels); a frame without a mover gets
+    an empty mask, and two parts get two boxes (both disks found)."""
+    from eval.mask_bench import gt_box_masks
+    from eval.mask_metrics import region_similarity
+    from mona_vo.masks import MaskConfig
+
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (120, 160, 3), np.uint8)
+    yy, xx = np.mgrid[:120, :160]
+    one = (xx - 50) ** 2 + (yy - 60) ** 2 < 25 ** 2
+    two = one | ((xx - 125) ** 2 + (yy - 40) ** 2 < 15 ** 2)
+    painted = image.copy()
+    painted[two] = (200, 40, 40)
+    masks = gt_box_masks([painted, painted, image], [one, two, np.zeros_like(one)], MaskConfig())
+    assert region_similarity(masks[0][:, :100], one[:, :100]) > 0.75
+    assert region_similarity(masks[1], two) > 0.75
+    assert not masks[2].any()
