@@ -1,7 +1,9 @@
 """VO accuracy and speed on generated scenes: presets x seeds x mask variants.
 
 Variants: ``none`` (no masks), ``gt`` (the generator's exact moving-object masks), ``mona``
-(masks computed by MONA on the fly). Each sequence is rendered once and shared by its variants.
+(masks computed by MONA on the fly; their rows also give the masks' mean IoU against the true
+masks and false-positive area, as the mask bench measures them, so an ATE can be read beside the
+masks that made it). Each sequence is rendered once and shared by its variants.
 ATE/RPE follow the Sintel protocol (:func:`eval.metrics.evaluate_trajectory`, Sim(3)); ATE is also
 given as a percentage of the GT path length, the unit of the issue targets.
 
@@ -18,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from data_tools.synthetic import SceneConfig, SyntheticScene
+from eval.mask_metrics import region_similarity
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
 from mona_vo.errors import EvalError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
@@ -47,9 +50,19 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     """One run. ``calib``: ``given`` passes the scene's true intrinsics; ``estimate`` passes
     none, as `mona-vo run` without --calib (the focal length is estimated, or guessed)."""
     masks = {"none": None, "gt": list(gt_masks), "mona": "mona"}[variant]
+    quality = {"mask_j": [], "mask_fp": []}
+
+    def judge(out):
+        # The masks `run` hands the VO, against the truth (with the VO's dynamic tracks as
+        # evidence, masks.evidence.vo_gain, they differ from `mona-vo masks`).
+        if out.mona is not None:
+            gt_mask = gt_masks[out.index]
+            quality["mask_j"].append(region_similarity(out.mask, gt_mask))
+            quality["mask_fp"].append(float(np.mean(out.mask & ~gt_mask)))
+
     t0 = time.perf_counter()
     result = estimate_trajectory(frames, intrinsics=scene.intrinsics if calib == "given" else None,
-                                 masks=masks, config=config)
+                                 masks=masks, config=config, on_frame=judge)
     wall = time.perf_counter() - t0
     gt = Trajectory(np.arange(len(frames), dtype=float), scene.poses())
     est = Trajectory(result.vo.timestamps, result.vo.poses)
@@ -82,6 +95,8 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
         "total_fps": n / wall,
         "stage_seconds": {k: round(v, 3) for k, v in result.timings.items()},
         "dropped": dict(result.vo.drops),
+        "mask_j": float(np.mean(quality["mask_j"])) if quality["mask_j"] else nan,
+        "mask_fp_pct": 100 * float(np.mean(quality["mask_fp"])) if quality["mask_fp"] else nan,
     }
 
 
@@ -164,6 +179,8 @@ def format_row(r: dict) -> str:
             f"masks {r['mask_ms_per_frame']:5.1f} ms/frame  low-conf {r['low_confidence']}"
             + (f"  focal {r['focal_error_pct']:+.1f}% -> {r['final_focal_error_pct']:+.1f}%"
                if r.get("calib") == "estimate" else "")
+            + (f"  mask J {r['mask_j']:.3f}, false positives {r['mask_fp_pct']:.2f} %"
+               if np.isfinite(r.get("mask_j", float("nan"))) else "")
             + (f"  rot {r['rot_rmse_deg']:.3f} deg, est. translation {r['est_translation_extent']:.3g}"
                if np.isfinite(r["rot_rmse_deg"]) else "")
             + ("" if r["status"] == "ok" else f"  {r['status']}"))

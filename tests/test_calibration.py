@@ -201,3 +201,22 @@ def test_a_second_pass_that_cannot_read_the_frames_again_keeps_the_first_pass():
     result = estimate_trajectory(Once(), masks=list(masks), config=PipelineConfig())
     assert result.vo.refine["second_pass"].startswith("no: reading the frames again failed")
     assert np.isfinite(result.vo.poses).all() and len(result.vo.poses) == len(frames)
+
+
+def test_vo_bench_reports_the_quality_of_the_masks_the_vo_was_given():
+    """A MONA row carries its masks' mean IoU and false-positive area against the true masks,
+    measured as the mask bench measures them (the same J on the same frames); rows of other
+    variants carry none."""
+    from eval.mask_bench import synthetic_rows
+    from eval.vo_bench import render_sequence, run_variant
+    from mona_vo.pipeline import PipelineConfig
+
+    scene, frames, masks = render_sequence("one-large", 0, 16, 320, 136)
+    mona = run_variant(scene, frames, masks, "mona", PipelineConfig())
+    gt = run_variant(scene, frames, masks, "gt", PipelineConfig())
+    bench, = synthetic_rows(("one-large",), (0,), n_frames=16, width=320, height=136,
+                            use_intrinsics=True)
+    assert mona["mask_j"] == pytest.approx(bench["J"], abs=1e-9)
+    assert mona["mask_fp_pct"] == pytest.approx(100 * bench["fp_area"], abs=1e-9)
+    assert 0.3 < mona["mask_j"] <= 1.0
+    assert np.isnan(gt["mask_j"]) and np.isnan(gt["mask_fp_pct"])
