@@ -6,7 +6,8 @@ Library functions return plain rows (lists of dicts); only ``python -m eval.mask
 * :func:`synthetic_rows`: per preset and seed of :mod:`data_tools.synthetic`, the mean over frames
   of the mask IoU against the GT mask (DAVIS J, 1 when both masks are empty), boundary F, and the
   false-positive area (mask pixels outside the GT mask, fraction of the image); presets without
-  movers ('static') are judged by the false-positive area.
+  movers ('static') are judged by the false-positive area. With ``gt_boxes`` (``--modes
+  gt-boxes``) the segmenter alone, prompted with the true boxes.
 * :func:`davis_rows`: DAVIS J and F (all frames, :func:`eval.mask_metrics.evaluate_mask_sequence`)
   per sequence and prompt mode ('boxes', 'points', 'raw-boxes'), and 'gt-boxes': the segmenter
   alone, prompted with the boxes of the true mask's parts (:func:`gt_box_masks`), what the
@@ -42,10 +43,11 @@ def _masks(frames: Iterable[tuple[int, np.ndarray]], config: MaskConfig, intrins
 def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                    seeds: Sequence[int] = (0, 1, 2), n_frames: int = 30, width: int = 1024,
                    height: int = 436, config: MaskConfig | None = None,
-                   use_intrinsics: bool = False) -> list[dict]:
+                   use_intrinsics: bool = False, gt_boxes: bool = False) -> list[dict]:
     """One row per (preset, seed): J (mean IoU), F, false-positive area fraction, mask and GT area
     fractions, frames. ``use_intrinsics`` passes the scene's true intrinsics to the masker
-    (default: the masker's uncalibrated guess, as for an online video)."""
+    (default: the masker's uncalibrated guess, as for an online video). ``gt_boxes``: the
+    segmenter alone, prompted with the true masks' part boxes (:func:`gt_box_masks`)."""
     from data_tools.synthetic import SceneConfig, SyntheticScene
 
     config = config or MaskConfig()
@@ -62,13 +64,20 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                     gts[i] = f.mask
                     yield i, f.image
 
+            if gt_boxes:
+                images = [image for _, image in frames()]
+                truth = [gts[i] for i in range(len(images))]
+                found = zip(range(len(images)), gt_box_masks(images, truth, config))
+            else:
+                found = ((out.index, out.mask) for out in
+                         _masks(frames(), config, scene.intrinsics if use_intrinsics else None))
             J, F, fp, area, gt_area = [], [], [], [], []
-            for out in _masks(frames(), config, scene.intrinsics if use_intrinsics else None):
-                gt = gts.pop(out.index)
-                J.append(region_similarity(out.mask, gt))
-                F.append(boundary_f(out.mask, gt))
-                fp.append(float(np.mean(out.mask & ~gt)))
-                area.append(float(out.mask.mean()))
+            for index, mask in found:
+                gt = gts.pop(index)
+                J.append(region_similarity(mask, gt))
+                F.append(boundary_f(mask, gt))
+                fp.append(float(np.mean(mask & ~gt)))
+                area.append(float(mask.mean()))
                 gt_area.append(float(gt.mean()))
             rows.append({"preset": preset, "seed": seed, "frames": len(J),
                          "J": float(np.mean(J)), "F": float(np.mean(F)),
@@ -254,7 +263,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--seeds", default="0,1,2", help="synthetic scene seeds, e.g. 0,1,2 or 100-111")
     parser.add_argument("--frames", type=int, default=30, help="frames per synthetic scene")
     parser.add_argument("--size", default="1024x436", help="synthetic image size WxH")
-    parser.add_argument("--modes", default="boxes", help="DAVIS prompt modes: boxes,points,raw-boxes,gt-boxes")
+    parser.add_argument("--modes", default="boxes", help="DAVIS prompt modes: boxes,points,raw-boxes,gt-boxes (the "
+                             "generated scenes: boxes, or gt-boxes alone)")
     parser.add_argument("--calib", choices=("guess", "estimate"), default="estimate",
                         help="DAVIS: the masker's camera, the focal length `mona-vo masks` and "
                              "`run` estimate (default) or the 60-degree field-of-view guess")
@@ -284,8 +294,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         print("\n== DAVIS-2016 means: tuning part, validation part, all ==")
         print(format_table(split_means(rows)), flush=True)
     if "synthetic" in parts:
+        # Of the prompt modes, the generated scenes take gt-boxes (the segmenter alone) or the
+        # method's boxes.
         rows = synthetic_rows(presets=tuple(args.presets.split(",")), seeds=seeds,
-                              n_frames=args.frames, width=w, height=h, config=config)
+                              n_frames=args.frames, width=w, height=h, config=config,
+                              gt_boxes=args.modes == "gt-boxes")
         print("\n== synthetic scenes, per seed ==")
         print(format_table(rows))
         print("\n== synthetic scenes, per preset (J = mean IoU; static: fp_area) ==")

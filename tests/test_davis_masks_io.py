@@ -130,3 +130,17 @@ def test_gt_box_prompts_measure_the_segmenter_alone():
     assert region_similarity(masks[0][:, :100], one[:, :100]) > 0.75
     assert region_similarity(masks[1], two) > 0.75
     assert not masks[2].any()
+
+
+def test_gt_box_prompts_on_generated_scenes_measure_the_segmenter_alone():
+    """The mask bench's generated part with `--modes gt-boxes`: the same frames and truth as
+    the method's row, the segmenter prompted with the true boxes. On one-large seed 0 (a flat
+    car, 8 frames) it cuts the car out (measured J 0.95 against the method's 0.82)."""
+    from eval.mask_bench import synthetic_rows
+
+    kw = dict(n_frames=8, width=320, height=136)
+    oracle, = synthetic_rows(("one-large",), (0,), gt_boxes=True, **kw)
+    method, = synthetic_rows(("one-large",), (0,), **kw)
+    assert oracle["frames"] == method["frames"] == 8
+    assert oracle["gt_area"] == pytest.approx(method["gt_area"])
+    assert oracle["J"] > 0.9 and oracle["fp_area"] < 0.03
