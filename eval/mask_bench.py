@@ -110,11 +110,9 @@ def gt_box_masks(images: Iterable[np.ndarray], gts: Iterable[np.ndarray],
     mask (parts under 0.1 % of the image dropped), without the masker's motion context: the
     detector and the box filter replaced by the truth."""
     from mona_vo.detection import Boxes, mask_to_boxes
-    from mona_vo.masks import SEGMENTERS, _build
+    from mona_vo.masks import build_segmenter
 
-    segmenter = _build(SEGMENTERS, config.segmenter,
-                       config.grabcut if config.segmenter == "grabcut" else None, device,
-                       config.segmenter_checkpoint)
+    segmenter = build_segmenter(config, device)
     out = []
     for image, gt in zip(images, gts):
         gt = np.asarray(gt, bool)
@@ -263,8 +261,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--seeds", default="0,1,2", help="synthetic scene seeds, e.g. 0,1,2 or 100-111")
     parser.add_argument("--frames", type=int, default=30, help="frames per synthetic scene")
     parser.add_argument("--size", default="1024x436", help="synthetic image size WxH")
-    parser.add_argument("--modes", default="boxes", help="DAVIS prompt modes: boxes,points,raw-boxes,gt-boxes (the "
-                             "generated scenes: boxes, or gt-boxes alone)")
+    parser.add_argument("--modes", default="boxes",
+                        help="DAVIS prompt modes: boxes,points,raw-boxes,gt-boxes (the generated "
+                             "scenes: boxes, or gt-boxes alone)")
     parser.add_argument("--calib", choices=("guess", "estimate"), default="estimate",
                         help="DAVIS: the masker's camera, the focal length `mona-vo masks` and "
                              "`run` estimate (default) or the 60-degree field-of-view guess")

@@ -213,6 +213,14 @@ def build_tracker(name: str, device: str = "cpu", checkpoint: str = "") -> Track
     return TRACKERS.create(name, device=device, checkpoint=checkpoint or None)
 
 
+def build_segmenter(config: MaskConfig, device: str = "cpu", weights: str = "") -> Segmenter:
+    """``config.segmenter``: the classical one with its section, a neural one on ``device``
+    with ``config.segmenter_checkpoint`` (or, when empty, from ``weights``)."""
+    return _build(SEGMENTERS, config.segmenter,
+                  config.grabcut if config.segmenter == "grabcut" else None,
+                  device, config.segmenter_checkpoint or weights)
+
+
 class MonaMasker:
     """Streaming MONA masks (module docstring).
 
@@ -238,9 +246,7 @@ class MonaMasker:
         self.detector = detector or _build(DETECTORS, cfg.detector,
                                            cfg.motion if cfg.detector == "motion" else None,
                                            device, cfg.detector_checkpoint or weights)
-        self.segmenter = segmenter or _build(SEGMENTERS, cfg.segmenter,
-                                             cfg.grabcut if cfg.segmenter == "grabcut" else None,
-                                             device, cfg.segmenter_checkpoint or weights)
+        self.segmenter = segmenter or build_segmenter(cfg, device, weights)
         self._points = DynamicPointsTracker(cfg.dynamic_points, self.tracker)
         self._size: tuple[int, int] | None = None      # (W, H)
         self._n = 0                                     # frames pushed
