@@ -64,6 +64,13 @@ def _add_refine_option(p: argparse.ArgumentParser) -> None:
                         "or none (streaming); same as --set vo.refine=...")
 
 
+def _add_draws_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--draws", action="append", default=[], metavar="KEY=V1,V2,...",
+                   help="run everything once per value (repeatable; each value of each key is one "
+                        "draw, e.g. --draws vo.grid_size=14,15,16,17,18) and write draws.md with "
+                        "each sequence's mean, median and range over the draws")
+
+
 def _add_mask_options(p: argparse.ArgumentParser, *, allow_folder: bool = True) -> None:
     if allow_folder:
         p.add_argument("--masks", default="mona", metavar="mona|none|DIR",
@@ -218,6 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run on Ray as `batch` does, one task per run: local (an embedded local Ray on "
                          "this machine's cores), auto or HOST:PORT (a cluster); replaces --workers")
     _add_refine_option(es)
+    _add_draws_option(es)
     es.set_defaults(func=_cmd_eval_sintel)
 
     eu = _sub(esub, "tum", config=True, help="folders in TUM RGB-D layout (TUM, Bonn, ETH3D): ATE/RPE per variant")
@@ -236,6 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run on Ray as `batch` does, one task per run: local (an embedded local Ray on "
                          "this machine's cores), auto or HOST:PORT (a cluster); replaces --workers")
     _add_refine_option(eu)
+    _add_draws_option(eu)
     eu.set_defaults(func=_cmd_eval_tum)
 
     ef = _sub(esub, "flow", help="end-point error and speed of a flow back end on one pair with GT flow, as JSON",
@@ -518,7 +527,7 @@ def _cmd_config(args) -> int:
 
 def _cmd_eval_sintel(args) -> int:
     from eval.datasets import sintel_sequences
-    from eval.harness import evaluate, parse_variants
+    from eval.harness import parse_variants
 
     config = _pipeline_config(args)
     _check_workers(args.workers)
@@ -527,17 +536,13 @@ def _cmd_eval_sintel(args) -> int:
         raise ConfigError("variant 'gt' needs --masks-root (folder of <seq>/frame_XXXX.png masks)")
     seqs = sintel_sequences(args.root, pass_=args.pass_, masks_root=args.masks_root,
                             names=args.seqs.split(",") if args.seqs else None)
-    rows = evaluate(seqs, variants, args.out, config=config, workers=args.workers, address=args.address,
-                    extra_hash={"dataset": "sintel", "pass": args.pass_}, progress=not args.quiet)
-    _print_summary(rows)
-    print(f"wrote {args.out}/results.md")
-    return 0 if all(r.get("status") == "ok" for r in rows) else 1
+    return _evaluate(args, config, seqs, variants, {"dataset": "sintel", "pass": args.pass_})
 
 
 def _cmd_eval_tum(args) -> int:
     from data_tools.calibration import parse_calibration
     from eval.datasets import TUM_MAX_DIFF, tum_sequences
-    from eval.harness import evaluate, parse_variants
+    from eval.harness import parse_variants
 
     config = _pipeline_config(args)
     _check_workers(args.workers)
@@ -552,14 +557,37 @@ def _cmd_eval_tum(args) -> int:
     seqs = tum_sequences(args.root, calib=calib, max_diff=max_diff, folder_calib=not estimate)
     # The tolerance and the camera change the results of finished runs, so they are part of
     # what a run is.
-    rows = evaluate(seqs, variants, args.out, config=config, workers=args.workers, address=args.address,
-                    extra_hash={"dataset": "tum", "max_diff": max_diff,
-                                "calib": "estimate" if estimate else
-                                         [calib.fx, calib.fy, calib.cx, calib.cy] if calib else ""},
-                    progress=not args.quiet)
-    _print_summary(rows)
-    print(f"wrote {args.out}/results.md")
+    return _evaluate(args, config, seqs, variants,
+                     {"dataset": "tum", "max_diff": max_diff,
+                      "calib": "estimate" if estimate else
+                               [calib.fx, calib.fy, calib.cx, calib.cy] if calib else ""})
+
+
+def _evaluate(args, config, seqs, variants, extra_hash: dict) -> int:
+    """The harness on these sequences, once or once per --draws value; prints the summary."""
+    from eval.harness import evaluate, evaluate_draws, parse_draws
+
+    kwargs = dict(config=config, workers=args.workers, address=args.address,
+                  extra_hash=extra_hash, progress=not args.quiet)
+    if args.draws:
+        by_draw = evaluate_draws(seqs, variants, args.out, parse_draws(args.draws, config), **kwargs)
+        rows = [r for rows in by_draw.values() for r in rows]
+        _print_draws(by_draw)
+        print(f"wrote {args.out}/draws.md")
+    else:
+        rows = evaluate(seqs, variants, args.out, **kwargs)
+        _print_summary(rows)
+        print(f"wrote {args.out}/results.md")
     return 0 if all(r.get("status") == "ok" for r in rows) else 1
+
+
+def _print_draws(by_draw) -> None:
+    from eval.harness import summarize_draws
+
+    for s in summarize_draws(by_draw):
+        ate = "-" if s["ate_mean"] is None else \
+            f"mean {s['ate_mean']:.4f} median {s['ate_median']:.4f} [{s['ate_min']:.4f}, {s['ate_max']:.4f}]"
+        print(f"{s['sequence']} [{s['variant']}] ATE {ate}  ok {s['ok']}/{s['draws']}")
 
 
 def _cmd_eval_flow(args) -> int:

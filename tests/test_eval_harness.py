@@ -157,3 +157,36 @@ def test_eval_tum_on_the_bonn_crowd_clip(mona_vo_exe, shared_subdir, tmp_path):
     assert row["status"] == "ok" and int(row["frames_with_pose"]) == 53
     assert int(row["n_matched"]) == 53
     assert 0 < float(row["ate"]) < 0.2   # metres, over a 0.17 m path: a sanity bound, not a target
+
+
+def test_eval_tum_draws_run_once_per_value_and_summarise_the_spread(mona_vo_exe, tmp_path):
+    """`--draws KEY=V1,V2`: every variant runs once per value, each into draws/KEY=V/, and
+    draws.json gives per sequence and variant the ATE of every draw with their mean, median and
+    range (which must agree with the draws' own result files); a bad key or value is a one-line
+    error naming it, before anything runs."""
+    scene = SyntheticScene(SceneConfig(width=320, height=136, n_frames=14, preset="one-large", seed=0))
+    stamps = 1311868164.0 + np.arange(len(scene)) / 30.0
+    root = tmp_path / "tum_seq"
+    write_tum_layout(root, stamps, (f.image for f in scene), scene.poses(), scene.intrinsics)
+    out = tmp_path / "eval"
+    proc = cli(mona_vo_exe, "eval", "tum", "--root", root, "--variants", "none", "--out", out,
+               "--draws", "vo.grid_size=12,16", "--draws", "vo.keyframe_max_gap=4")
+    assert proc.returncode == 0, proc.stderr
+    names = ["vo.grid_size=12", "vo.grid_size=16", "vo.keyframe_max_gap=4"]
+    ates = [json.loads((out / "draws" / n / "results.json").read_text())["runs"][0]["ate"]
+            for n in names]
+    s, = json.loads((out / "draws.json").read_text())["summary"]
+    assert s["sequence"] == "tum_seq" and s["variant"] == "none" and s["ok"] == s["draws"] == 3
+    assert [s["ate"][n] for n in names] == pytest.approx(ates)
+    assert s["ate_mean"] == pytest.approx(np.mean(ates))
+    assert s["ate_median"] == pytest.approx(np.median(ates))
+    assert s["ate_min"] == pytest.approx(min(ates)) and s["ate_max"] == pytest.approx(max(ates))
+    assert len(set(round(a, 9) for a in ates)) > 1      # the draws are different runs
+    assert "tum_seq" in (out / "draws.md").read_text()
+    for bad, named in (("vo.grid_sise=3", "vo.grid_sise"), ("vo.grid_size=1", "vo.grid_size"),
+                       ("vo.grid_size", "--draws")):
+        proc = cli(mona_vo_exe, "eval", "tum", "--root", root, "--variants", "none",
+                   "--out", tmp_path / "bad", "--draws", bad)
+        assert proc.returncode != 0 and named in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1
+        assert not (tmp_path / "bad" / "draws").exists()
