@@ -4,6 +4,7 @@ generated TUM-layout folder with exact GT and on the real Bonn crowd clip."""
 import csv
 import json
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -190,3 +191,20 @@ def test_eval_tum_draws_run_once_per_value_and_summarise_the_spread(mona_vo_exe,
         assert proc.returncode != 0 and named in proc.stderr, proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1
         assert not (tmp_path / "bad" / "draws").exists()
+
+
+def test_a_masks_draw_runs_only_the_variants_that_use_mona_masks(tmp_path, monkeypatch):
+    """A ``masks.*`` draw would only repeat a no-mask run (and weigh it twice in the means)."""
+    import eval.harness as harness
+
+    seen = []
+
+    def spy(sequences, variants, out_dir, **kw):
+        seen.append((Path(out_dir).name, list(variants)))
+        return []
+
+    monkeypatch.setattr(harness, "evaluate", spy)
+    harness.evaluate_draws([], ["none", "mona", "mona-points"], tmp_path,
+                           [{"vo.grid_size": "15"}, {"masks.dynamic_points.seed": "2"}])
+    assert seen == [("vo.grid_size=15", ["none", "mona", "mona-points"]),
+                    ("masks.dynamic_points.seed=2", ["mona", "mona-points"])]
