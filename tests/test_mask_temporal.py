@@ -43,6 +43,15 @@ def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
     assert ate("mona", **{"vo.refine": "none"}) < 0.6 * ate(None, **{"vo.refine": "none"})
     mona, none, true = ate("mona"), ate(None), ate(true_masks)
     assert mona <= 1.05 * none and mona <= 1.1 * true, (mona, none, true)
+    # One run is one draw of the VO's point grid (stop 26: this scene's spread is as large as
+    # the masks' effect). Over five draws (vo.grid_size 14-18; measured ATE % of path without
+    # masks 0.167 / 5.585 / 0.159 / 0.128 / 0.177, with MONA 0.145 / 0.128 / 0.153 / 0.133 /
+    # 0.124) the masks lower the median by a fifth and are never clearly worse in one draw.
+    draws = [(ate("mona", **{"vo.grid_size": g}), ate(None, **{"vo.grid_size": g}))
+             for g in (14, 15, 17, 18)] + [(mona, none)]
+    with_masks, without = np.array(draws).T
+    assert np.median(with_masks) < 0.9 * np.median(without), draws
+    assert np.all(with_masks <= 1.1 * without), draws
 
 
 def test_a_movers_mask_is_stable_from_frame_to_frame(small_scene):
