@@ -151,7 +151,8 @@ def davis_rows(root: str | Path | None = None,
     for seq in sequences:
         ds = DavisSequence(Path(root) if root is not None else davis_root_of(seq), seq)
         intrinsics, extra = None, {}
-        if calib == "estimate":
+        # The true-box prompts need no camera: the estimate is only for the masker's modes.
+        if calib == "estimate" and any(mode != "gt-boxes" for mode in modes):
             from mona_vo.pipeline import PipelineConfig, camera_ahead
 
             pipeline = pipeline or PipelineConfig()
