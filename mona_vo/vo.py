@@ -621,8 +621,9 @@ class VisualOdometry:
         shared tracks' sum grew by 68-73 px^2 against a bound of 1-2) from replacing a pair
         that was right."""
         cfg = self.cfg
+        lk = self.tracker if isinstance(self.tracker, LKTracker) else None
         ua, ub = pair_matches(att.gray, gray, uv0, uv, att.mask, mask, cfg.init_dense_points,
-                              cfg.init_dense_fb_px)
+                              cfg.init_dense_fb_px, lk)
         if len(ua) <= len(uv0):
             return rel
         dense = relative_pose(ua, ub, intr0, intr)

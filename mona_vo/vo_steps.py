@@ -199,13 +199,14 @@ def triangulate_against(views, ids: np.ndarray, uv: np.ndarray, intr: Intrinsics
 
 def pair_matches(gray_a: np.ndarray, gray_b: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray,
                  mask_a: np.ndarray | None, mask_b: np.ndarray | None, n_points: int,
-                 fb_px: float) -> tuple[np.ndarray, np.ndarray]:
+                 fb_px: float, lk: LKTracker | None = None) -> tuple[np.ndarray, np.ndarray]:
     """More matches between the two frames of a start pair than the (N, 2) tracks uv_a, uv_b
     they share: up to ``n_points`` Shi-Tomasi corners of frame a outside its mask, found in
     frame b by pyramidal Lucas-Kanade started where the homography of the shared tracks puts
     them, kept when tracking them back lands within ``fb_px`` of where they started and they
     fall inside frame b, outside its mask. Returns (K, 2) float64 pixels in a and b (K may be
-    0)."""
+    0). ``lk``: whose Lucas-Kanade window, levels and stopping criteria to use (the VO's
+    tracker when it is one; default LKTracker's)."""
     empty = (np.zeros((0, 2)), np.zeros((0, 2)))
     h, w = gray_a.shape
     if n_points <= 0 or len(uv_a) < 8:
@@ -219,7 +220,7 @@ def pair_matches(gray_a: np.ndarray, gray_b: np.ndarray, uv_a: np.ndarray, uv_b:
         return empty
     pa = corners.reshape(-1, 1, 2).astype(np.float32)
     guess = cv2.perspectiveTransform(pa, H)
-    lk = LKTracker()   # the VO tracker's Lucas-Kanade settings
+    lk = lk if lk is not None else LKTracker()
     pb, found, fb = track_forward_backward(gray_a, gray_b, pa, guess, lk.win, lk.levels, lk.criteria)
     pa = pa.reshape(-1, 2)
     ok = found & (fb < fb_px) & np.isfinite(pb).all(axis=1)

@@ -375,3 +375,26 @@ def test_pair_matches_finds_many_more_matches_that_follow_the_true_motion_outsid
     # Too few shared tracks for a homography, or asked for none: nothing.
     assert len(pair_matches(a, b, uv_a[:5], uv_b[:5], None, None, 500, 0.5)[0]) == 0
     assert len(pair_matches(a, b, uv_a, uv_b, None, None, 0, 0.5)[0]) == 0
+
+
+def test_pair_matches_tracks_with_the_given_trackers_lucas_kanade_settings(monkeypatch):
+    import cv2
+
+    import mona_vo.vo_steps as steps
+    from mona_vo.tracking import LKTracker
+
+    rng = np.random.default_rng(4)
+    a = cv2.GaussianBlur(rng.uniform(0, 255, (120, 160)).astype(np.float32), (0, 0), 2.0)
+    a = cv2.normalize(a, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    uv = rng.uniform(20, 100, (12, 2))
+    seen = []
+    real = steps.track_forward_backward
+
+    def spy(ga, gb, pa, guess, win, levels, criteria):
+        seen.append((win, levels, criteria[1]))
+        return real(ga, gb, pa, guess, win, levels, criteria)
+
+    monkeypatch.setattr(steps, "track_forward_backward", spy)
+    steps.pair_matches(a, a, uv, uv, None, None, 50, 0.5, LKTracker(win_size=15, levels=2, iterations=9))
+    steps.pair_matches(a, a, uv, uv, None, None, 50, 0.5)
+    assert seen == [((15, 15), 2, 9), ((21, 21), 3, 30)]
