@@ -25,6 +25,7 @@ from mona_vo.config import check_fields, setting
 from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
 from mona_vo.tracking import TRACKERS
 from mona_vo.errors import ConfigError, InputError
+from mona_vo.picture_area import PictureArea, crop_frames, picture_area_ahead
 from mona_vo.vo import VOConfig, VOResult, VisualOdometry
 
 
@@ -50,6 +51,10 @@ class PipelineConfig:
     assumed_hfov_deg: float = setting(DEFAULT_HFOV_DEG, ge=10, le=170)  # horizontal field of
                                             # view assumed without --calib, degrees (masks, VO
                                             # and report)
+    crop_bars: bool = setting(True)         # find flat letterbox / pillarbox bars in the first
+                                            # frames and run on the picture inside them
+                                            # (mona_vo.picture_area); masks and intrinsics stay
+                                            # in full-frame pixels
     calibration: FocalConfig = field(default_factory=FocalConfig)  # focal length without
                                             # --calib (mona_vo.calibration)
     vo: VOConfig = field(default_factory=VOConfig)  # visual odometry
@@ -89,6 +94,8 @@ class FrameOutput:
     image: np.ndarray               # (H, W, 3) uint8 RGB
     mask: np.ndarray | None         # (H, W) bool moving-object mask, None without masks
     mona: Any = None                # mona_vo.masks.MaskFrame when MONA computed the mask
+    origin: tuple[int, int] = (0, 0)  # (x, y) of the picture MONA saw in this frame: its points
+                                    # and boxes are in the picture's pixels (crop_bars)
 
 
 @dataclass
@@ -103,6 +110,7 @@ class RunResult:
     timings: dict[str, float]       # stage -> seconds (masks stages, VO stages, total)
     mask_coverage: np.ndarray       # (N,) fraction of each frame's pixels inside its mask
     calibration: Any = None         # mona_vo.calibration.FocalEstimate without given intrinsics
+    picture: PictureArea | None = None  # the picture inside bars the run used (crop_bars)
 
     @property
     def n_frames(self) -> int:
@@ -122,12 +130,22 @@ def _intrinsics_for(intrinsics, frame, width, height) -> Intrinsics | None:
     return intrinsics[frame.index]
 
 
-class _CallerMasks:
-    """Masks given by the caller: an iterable aligned with the frames, or a callable."""
+def _intrinsics_in_picture(intrinsics, area: PictureArea):
+    """The caller's full-frame intrinsics (any form :func:`_intrinsics_for` takes) as the
+    picture's."""
+    if intrinsics is None or isinstance(intrinsics, Intrinsics):
+        return area.to_picture(intrinsics)
+    return lambda frame: area.to_picture(_intrinsics_for(intrinsics, frame, *area.size))
 
-    def __init__(self, masks):
+
+class _CallerMasks:
+    """Masks given by the caller: an iterable aligned with the frames, or a callable; in
+    full-frame pixels, cut to the picture the run uses."""
+
+    def __init__(self, masks, area: PictureArea | None = None):
         self.fn = masks if callable(masks) else None
         self.it = None if callable(masks) else iter(masks)
+        self.area = area
 
     def get(self, frame) -> np.ndarray | None:
         if self.fn is not None:
@@ -140,10 +158,11 @@ class _CallerMasks:
         if m is None:
             return None
         m = np.asarray(m).astype(bool)
-        if m.shape != frame.image.shape[:2]:
+        full = getattr(frame, "full", frame.image)
+        if m.shape != full.shape[:2]:
             raise InputError(f"mask for frame {frame.name} is {m.shape[1]} x {m.shape[0]}, "
-                             f"the frame is {frame.image.shape[1]} x {frame.image.shape[0]}")
-        return m
+                             f"the frame is {full.shape[1]} x {full.shape[0]}")
+        return m if self.area is None else self.area.crop(m)
 
 
 def estimate_focal_ahead(frames: Iterable, config: "PipelineConfig"):
@@ -251,6 +270,15 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     config.validate()
     t_start = time.perf_counter()
     source = frames
+    rereadable = iter(source) is not source
+    picture = None
+    if config.crop_bars:
+        frames, picture = picture_area_ahead(frames)
+    cropped = picture is not None and not picture.is_whole
+    if cropped:
+        # Everything from here on sees the picture alone: masks, focal-length estimate, VO.
+        frames, source = crop_frames(frames, picture), crop_frames(source, picture)
+        intrinsics = _intrinsics_in_picture(intrinsics, picture)
     calibration = None
     if intrinsics is None and config.calibration.mode == "estimate":
         # Without intrinsics the focal length comes from the first frames (read ahead, then
@@ -271,13 +299,13 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             raise ConfigError(f"masks must be 'mona', None, an iterable or a callable, not '{masks}'")
         use_mona = True
     elif masks is not None:
-        caller = _CallerMasks(masks)
+        caller = _CallerMasks(masks, picture if cropped else None)
 
     pending: deque = deque()   # frames waiting for their MONA mask
     # Without intrinsics the VO may run twice (_second_pass); the masks it saw are kept for that,
     # packed to a bit per pixel.
     may_rerun = (intrinsics is None and config.vo.refine == "global"
-                 and config.vo.global_camera != "none" and iter(source) is not source)
+                 and config.vo.global_camera != "none" and rereadable)
     vo_masks: list = []
 
     def feed(frame, mask, mona=None, vo_mask=None):
@@ -292,13 +320,16 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             first_intr = intr or camera_without_calib(calibration, config, *size)
             vo = VisualOdometry(config.vo, size[0], size[1], first_intr,
                                 tracker=config.build_tracker(), camera_known=intr is not None)
+        full_mask = picture.uncrop(mask) if cropped else mask
         if on_frame is not None:
-            on_frame(FrameOutput(frame.index, frame.name, frame.timestamp, frame.image, mask, mona))
+            on_frame(FrameOutput(frame.index, frame.name, frame.timestamp,
+                                 getattr(frame, "full", frame.image), full_mask, mona,
+                                 (picture.x0, picture.y0) if cropped else (0, 0)))
         vo.step(frame.image, timestamp=frame.timestamp, mask=vo_mask, intrinsics=intr)
         if may_rerun:
             vo_masks.append(None if vo_mask is None else np.packbits(vo_mask))
         names.append(frame.name)
-        coverage.append(float(mask.mean()) if mask is not None else 0.0)
+        coverage.append(float(full_mask.mean()) if full_mask is not None else 0.0)
         if progress is not None:
             progress(len(names))
 
@@ -312,12 +343,16 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                 timings[key] = timings.get(key, 0.0) + sec
             feed(frame, mf.mask, mf, getattr(mf, "vo_mask", mf.mask))
 
+    full_size = None
     for frame in frames:
+        h, w = getattr(frame, "full", frame.image).shape[:2]
+        if full_size is None:
+            full_size = (w, h)
+        elif full_size != (w, h):
+            raise InputError(f"frame {frame.name} is {w} x {h}, earlier frames are "
+                             f"{full_size[0]} x {full_size[1]}")
         h, w = frame.image.shape[:2]
-        if size is None:
-            size = (w, h)
-        elif size != (w, h):
-            raise InputError(f"frame {frame.name} is {w} x {h}, earlier frames are {size[0]} x {size[1]}")
+        size = (w, h)
         if use_mona:
             if masker is None:
                 from mona_vo.masks import MonaMasker
@@ -344,5 +379,6 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     timings["total"] = time.perf_counter() - t_start
     if calibration is not None:
         timings["calibration"] = calibration.seconds
-    return RunResult(result, names, size[0], size[1], first_intr, timings, np.array(coverage),
-                     calibration)
+    return RunResult(result, names, full_size[0], full_size[1],
+                     picture.to_frame(first_intr) if cropped else first_intr, timings,
+                     np.array(coverage), calibration, picture)

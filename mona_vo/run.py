@@ -129,6 +129,9 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "keyframes": int(vo.is_keyframe.sum()),
         "reprojection_rmse_px": getattr(vo, "reprojection_rmse_px", None),
         "image_size": [result.width, result.height],
+        # The picture inside flat letterbox / pillarbox bars, where the run looked (crop_bars);
+        # pixel values under global_refinement are the picture's, all others the frame's.
+        "picture_area": result.picture.as_dict() if result.picture is not None else None,
         "masks": masks or "none",
         "mean_mask_coverage": float(result.mask_coverage.mean()) if result.n_frames else 0.0,
         "calibration": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
@@ -186,6 +189,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
     from data_tools.frames import open_frames
     from data_tools.run_outputs import RunOutputs
     from mona_vo.masks import compute_masks
+    from mona_vo.picture_area import PictureArea, crop_frames, picture_area_ahead
 
     config = config or PipelineConfig()
     source = open_frames(input_path, stride=stride, max_frames=max_frames)
@@ -201,12 +205,19 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
         bar, update = _progress_bar(len(source), "mona-vo masks", progress)
         t0 = time.perf_counter()
         try:
-            frames, estimate, camera = camera_ahead(source, config, source.width, source.height)
+            frames, area = source, PictureArea.whole(source.width, source.height)
+            if config.crop_bars:
+                frames, area = picture_area_ahead(source)
+                area = area or PictureArea.whole(source.width, source.height)
+                frames = crop_frames(frames, area)
+            frames, estimate, camera = camera_ahead(frames, config, *area.size)
             for n, mf in enumerate(compute_masks(remember(frames), config.masks, camera,
                                                  **config.masker_backends()), start=1):
-                outputs.add_mask(names.pop(mf.index), mf.mask)
-                coverage.append(float(mf.mask.mean()))
+                mask = area.uncrop(mf.mask)
+                outputs.add_mask(names.pop(mf.index), mask)
+                coverage.append(float(mask.mean()))
                 update(n)
+            camera = area.to_frame(camera)
         finally:
             if bar is not None:
                 bar.close()
@@ -214,6 +225,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
         report = {"input": str(input_path), "frames": len(coverage), "seconds": round(seconds, 3),
                   "frames_per_second": round(len(coverage) / seconds, 2) if seconds > 0 else None,
                   "mean_mask_coverage": float(np.mean(coverage)) if coverage else 0.0,
+                  "picture_area": area.as_dict(),
                   "calibration": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                                   "source": _camera_source(getattr(estimate, "used", False),
                                                            config),
