@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from data_tools.bars import KINDS as BAR_KINDS, add_bars
 from data_tools.synthetic import SceneConfig, SyntheticScene
 from eval.mask_metrics import region_similarity
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
@@ -102,15 +103,19 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
 
 def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
               config: PipelineConfig | None = None, on_row=None, repeats: int = 1,
-              calib: str = "given") -> list[dict]:
+              calib: str = "given", bars: str | None = None) -> list[dict]:
     """One row per preset x seed x variant x repeat. ``repeats`` > 1 runs each sequence again to
     measure the run-to-run spread of one input (0 when the pipeline is deterministic);
-    ``calib`` as in :func:`run_variant`."""
+    ``calib`` as in :func:`run_variant`; ``bars``: paint bars of this kind over every frame
+    (:func:`data_tools.bars.add_bars`; the true masks keep the movers under the bars, which no
+    mask can find)."""
     config = config or PipelineConfig()
     rows = []
     for preset in presets:
         for seed in seeds:
             scene, frames, masks = render_sequence(preset, seed, n_frames, width, height)
+            if bars:
+                frames = [_Frame(f.index, f.timestamp, f.name, add_bars(f.image, bars)) for f in frames]
             coverage = float(np.mean([m.mean() for m in masks]))
             for variant in variants:
                 for repeat in range(repeats):
@@ -238,6 +243,9 @@ def main(argv=None) -> int:
     ap.add_argument("--calib", choices=("given", "estimate"), default="given",
                     help="given: the scenes' true intrinsics; estimate: none, as `mona-vo run` "
                          "without --calib (default given)")
+    ap.add_argument("--bars", choices=BAR_KINDS,
+                    help="paint bars of this kind over every frame (data_tools.bars), as "
+                         "online videos carry them")
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of each sequence, to measure the run-to-run spread (default 1)")
     args = ap.parse_args(argv)
@@ -248,7 +256,7 @@ def main(argv=None) -> int:
     rows = benchmark(args.presets.split(","), parse_seeds(args.seeds), args.variants.split(","),
                      n_frames=args.frames, width=w, height=h, config=cfg,
                      on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats),
-                     calib=args.calib)
+                     calib=args.calib, bars=args.bars)
     print()
     summary = summarize(rows)
     print(format_summary(summary))

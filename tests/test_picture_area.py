@@ -174,3 +174,45 @@ def test_run_writes_full_frame_masks_and_reports_the_picture(letterboxed, tmp_pa
     assert only["picture_area"] == report["picture_area"]
     again = np.stack([read_mask_png(p) for p in sorted((tmp_path / "masks" / "masks").glob("*.png"))])
     assert again.shape == stack.shape and not again[:, :bar + 2].any()
+
+
+def test_painted_bars_are_found_again_and_a_tum_folder_is_copied_with_them(tmp_path):
+    from data_tools.bars import add_bars, main, write_barred_copy
+
+    img = _frames(n=1)[0]
+    for kind, expect in (("letterbox", (0, 16, 200, 104)), ("pillarbox", (26, 0, 174, 120)),
+                         ("window", (26, 11, 174, 109))):
+        barred = [add_bars(f, kind) for f in _frames(n=3)]
+        a = find_picture_area(barred)
+        assert (a.x0, a.y0, a.x1, a.y1) == expect, kind
+    coded = add_bars(img, "letterbox-jpeg")
+    assert coded.shape == img.shape and abs(int(coded[0, 0, 0]) - 16) <= 2
+    assert np.array_equal(add_bars(img, "letterbox")[20:100], img[20:100])   # the picture untouched
+    with pytest.raises(ValueError, match="bars kind"):
+        add_bars(img, "blurred")
+
+    src = tmp_path / "seq"
+    (src / "rgb").mkdir(parents=True)
+    for i in range(3):
+        cv2.imwrite(str(src / "rgb" / f"{i}.png"), img)
+    (src / "groundtruth.txt").write_text("0 0 0 0 0 0 0 1\n")
+    (src / "calib.txt").write_text("100 100 100 60\n")
+    assert write_barred_copy(src, tmp_path / "out", "letterbox") == 3
+    out = cv2.imread(str(tmp_path / "out" / "rgb" / "1.png"))
+    assert not out[:14].any() and np.array_equal(out[20:100], img[20:100])
+    assert (tmp_path / "out" / "calib.txt").read_text() == "100 100 100 60\n"
+    assert (tmp_path / "out" / "groundtruth.txt").is_file()
+    assert main([str(tmp_path / "missing"), str(tmp_path / "x")]) == 1
+    assert not (tmp_path / "x").exists()
+
+
+def test_vo_bench_paints_the_bars_it_is_asked_for(monkeypatch):
+    import eval.vo_bench as vb
+
+    seen = []
+    monkeypatch.setattr(vb, "run_variant", lambda scene, frames, masks, variant, cfg, calib:
+                        seen.append(frames[0].image.copy()) or {"variant": variant})
+    vb.benchmark(["static"], [0], ["none"], n_frames=3, width=96, height=64, bars="letterbox")
+    vb.benchmark(["static"], [0], ["none"], n_frames=3, width=96, height=64)
+    assert not seen[0][:7].any() and seen[1][:7].any()
+    assert np.array_equal(seen[0][8:56], seen[1][8:56])

@@ -1,0 +1,101 @@
+"""Letterbox and pillarbox bars painted over frames, as online videos carry them: to measure
+what they cost (``eval.vo_bench --bars``) and what cutting them off (``crop_bars``,
+:mod:`mona_vo.picture_area`) gives back.
+
+The bars cover part of the picture (they do not shrink it into the frame), so a run on barred
+frames sees less of the scene than one on the originals; compare bars cut with bars kept.
+
+``python -m data_tools.bars SRC DST [--kind letterbox] [--frac 0.12]`` writes DST, a copy of the
+image folder SRC with bars on every image (same names and format); the text files of a TUM-layout
+folder (``rgb.txt``, ``groundtruth.txt``, ``calib.txt``) are copied with it and its ``rgb/`` folder
+gets the bars.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from data_tools.atomic import write_bytes_atomic
+from data_tools.frames import IMAGE_EXTENSIONS
+from mona_vo.errors import InputError
+
+KINDS = ("letterbox", "pillarbox", "window", "letterbox-jpeg")
+
+
+def add_bars(image: np.ndarray, kind: str, frac: float = 0.12) -> np.ndarray:
+    """A copy of (H, W, 3) uint8 ``image`` with flat bars over ``frac`` of its height at top and
+    bottom (letterbox), of its width left and right (pillarbox), both (window: 2/3 of ``frac``
+    top and bottom), or a letterbox in video black (16) and the frame JPEG-coded at quality 60
+    (letterbox-jpeg: the ringing of a re-encoded upload)."""
+    if kind not in KINDS:
+        raise ValueError(f"bars kind must be one of {', '.join(KINDS)}, not '{kind}'")
+    out = np.array(image, np.uint8, copy=True)
+    h, w = out.shape[:2]
+    by, bx = int(frac * h), int(frac * w)
+    if kind == "window":
+        by = int(frac * h * 2 / 3)
+    level = 16 if kind == "letterbox-jpeg" else 0
+    if kind in ("letterbox", "window", "letterbox-jpeg") and by:
+        out[:by] = level
+        out[h - by:] = level
+    if kind in ("pillarbox", "window") and bx:
+        out[:, :bx] = level
+        out[:, w - bx:] = level
+    if kind == "letterbox-jpeg":
+        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, 60])
+        out = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    return out
+
+
+def write_barred_copy(src, dst, kind: str = "letterbox", frac: float = 0.12) -> int:
+    """Copy the image folder (or TUM-layout folder) ``src`` to ``dst`` with bars on every image;
+    returns the number of images written."""
+    src, dst = Path(src), Path(dst)
+    if not src.is_dir():
+        raise InputError(f"{src}: not a folder")
+    images = src / "rgb" if (src / "rgb").is_dir() else src
+    files = sorted(p for p in images.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    if not files:
+        raise InputError(f"{images}: no images")
+    out = dst / images.relative_to(src)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("rgb.txt", "groundtruth.txt", "calib.txt"):
+        if images != src and (src / name).is_file():
+            shutil.copy(src / name, dst / name)
+    for p in files:
+        im = cv2.imread(str(p), cv2.IMREAD_COLOR)     # BGR in, BGR out: the bars are grey
+        if im is None:
+            raise InputError(f"{p}: cannot be read as an image")
+        ok, buf = cv2.imencode(p.suffix, add_bars(im, kind, frac))
+        if not ok:
+            raise InputError(f"{p}: cannot be written as {p.suffix}")
+        write_bytes_atomic(out / p.name, buf.tobytes())
+    return len(files)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m data_tools.bars", description=__doc__.split("\n\n")[0])
+    ap.add_argument("src")
+    ap.add_argument("dst")
+    ap.add_argument("--kind", choices=KINDS, default="letterbox")
+    ap.add_argument("--frac", type=float, default=0.12)
+    args = ap.parse_args(argv)
+    if not 0 < args.frac < 0.5:
+        print(f"error: --frac must lie in (0, 0.5), not {args.frac}", file=sys.stderr)
+        return 1
+    try:
+        n = write_barred_copy(args.src, args.dst, args.kind, args.frac)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {n} images with {args.kind} bars to {args.dst}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
