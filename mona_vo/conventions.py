@@ -17,6 +17,11 @@ Quaternions
 Intrinsics
     Pinhole ``fx, fy, cx, cy`` in pixels (:class:`Intrinsics`), one per frame allowed.
 
+Working resolutions
+    A stage that works on a reduced image is given its size as the reduced image's longer side
+    (:func:`working_size`), so a portrait frame is reduced as the same frame turned landscape
+    would be, not by its narrow width.
+
 Pixels
     Pixel centres sit at integer coordinates: the centre of the top-left pixel is (0, 0), so an image
     of width w spans x in [-0.5, w - 0.5]. Pixel coordinates are ``(x, y)`` = (column, row) float
@@ -205,3 +210,12 @@ def pixel_grid(width: int, height: int) -> np.ndarray:
     """(height, width, 2) float64 pixel-centre coordinates x, y."""
     xs, ys = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     return np.stack([xs, ys], axis=-1)
+
+
+def working_size(width: int, height: int, long_side: int) -> tuple[int, int]:
+    """(w, h) of a width x height image reduced so that its longer side is at most
+    ``long_side`` (never enlarged), aspect kept, each side at least 1."""
+    scale = min(1.0, long_side / max(width, height))
+    if scale == 1.0:
+        return int(width), int(height)
+    return max(int(round(width * scale)), 1), max(int(round(height * scale)), 1)

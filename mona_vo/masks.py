@@ -10,7 +10,7 @@ images, flows and track windows are held, so memory does not grow with the input
 Per frame t (stages timed in ``MaskFrame.seconds``):
 
 ``flow``            optical flow t -> t+1 (``config.flow``); ``m_t`` its mean magnitude; the
-                    flow is kept at the analysis resolution (``analysis_width``).
+                    flow is kept at the analysis resolution (``analysis_size``).
 ``tracking``        anchor and detection points through the window (``config.tracker``).
 ``dynamic_points``  camera motion per window pair, residuals, Cauchy probabilities and the
                     adaptive threshold (:mod:`mona_vo.dynamic_points`).
@@ -70,7 +70,7 @@ import numpy as np
 
 from mona_vo.box_filter import UNIT_RULES, BoxFilterResult, adaptive_box_filter
 from mona_vo.config import check_fields, setting
-from mona_vo.conventions import Intrinsics
+from mona_vo.conventions import Intrinsics, working_size
 from mona_vo.detection import (DETECTORS, Boxes, Detector, FrameContext, MotionDetectorConfig,
                                _to_full_resolution, box_pixel_ranges, mask_to_boxes, merge_boxes)
 from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, NO_MODEL, DynamicPoints,
@@ -112,7 +112,8 @@ class MaskConfig:
     tau0: float = setting(3.0, gt=0)        # dynamic points the unit box must hold (count)
     box_filter_unit: str = setting("smallest-qualifying", choices=UNIT_RULES)  # unit box rule:
                                             # smallest-qualifying | smallest
-    analysis_width: int = setting(256, ge=16)  # width of the motion map, pixels
+    analysis_size: int = setting(256, ge=16)  # longer side of the motion map, pixels
+                                            # (conventions.working_size)
     motion_gap: int = setting(8, ge=1)      # G_max: motion map from the flow t -> t+G, frames
     motion_travel_px: float = setting(24.0, ge=0)  # G is the fewest frames whose m_t add up to
                                             # this, px
@@ -322,9 +323,7 @@ class MonaMasker:
 
     # ------------------------------------------------------------------ stages
     def _analysis_size(self) -> tuple[int, int]:
-        W, H = self._size
-        w = min(self.config.analysis_width, W)
-        return w, max(int(round(H * w / W)), 1)
+        return working_size(*self._size, self.config.analysis_size)
 
     def _add_flow(self, p: int, image0, image1) -> None:
         """Flow of frame p (image0) to image1, kept at the analysis resolution, and its m_t."""

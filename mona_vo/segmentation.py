@@ -29,7 +29,7 @@ initialised from motion and prompts, per prompt region:
   often incomplete masks, as the paper's ablation reports for SAM.
 
 The mask is upsampled to the image size, its edge moved onto the image edges nearby by a guided
-filter (``refine_radius_px``, ``refine_eps``; GrabCut itself runs at ``work_width``, as GrabCut
+filter (``refine_radius_px``, ``refine_eps``; GrabCut itself runs at ``work_size``, as GrabCut
 on a 200 x 200 crop already costs about 90 ms), and dilated by ``dilate_px`` (masks feed a VO
 that must not use a point on a mover: a slightly too large mask costs less than a missed rim).
 
@@ -49,6 +49,7 @@ import numpy as np
 from mona_vo.detection import (Boxes, FrameContext, box_pixel_ranges, group_points,
                                moving_region_mask)
 from mona_vo.config import check_fields, setting
+from mona_vo.conventions import working_size
 from mona_vo.errors import ConfigError
 from mona_vo.registry import Registry
 
@@ -77,7 +78,8 @@ class GrabCutConfig:
     """Settings of the ``grabcut`` segmenter."""
 
     method: str = setting("grabcut", choices=("grabcut", "motion"))  # grabcut (colour + motion) | motion (moving pixels only)
-    work_width: int = setting(256, ge=16)  # segmentation resolution: image width in pixels
+    work_size: int = setting(256, ge=16)  # segmentation resolution: the image's longer side,
+                                          # pixels (conventions.working_size)
     iterations: int = setting(1, ge=1)  # GrabCut iterations per region (2 measured no better)
     context_margin_frac: float = setting(0.25, ge=0)  # ring around a box used as background, fraction of size
     fg_factor: float = setting(1.0, gt=0)  # probable foreground where motion > fg_factor * motion_theta
@@ -169,8 +171,7 @@ class GrabCutSegmenter(Segmenter):
     # -- helpers -----------------------------------------------------------------------------
     def _work(self, image: np.ndarray):
         H, W = image.shape[:2]
-        w = min(self.config.work_width, W)
-        h = max(int(round(H * w / W)), 1)
+        w, h = working_size(W, H, self.config.work_size)
         small = image if (w, h) == (W, H) else cv2.resize(image, (w, h),
                                                           interpolation=cv2.INTER_AREA)
         return small, w / W, h / H

@@ -114,3 +114,24 @@ def test_camera_depths_are_reprojects_depths_pose_by_pose():
     pts = np.random.default_rng(3).normal(size=(6, 3)) * 4
     expected = np.array([reproject(T, p[None], Intrinsics(1, 1, 0, 0))[1][0] for T, p in zip(poses, pts)])
     np.testing.assert_allclose(camera_depths(poses, pts), expected)
+
+
+def test_working_size_reduces_the_longer_side_so_portrait_frames_match_their_landscape_turn():
+    from mona_vo.conventions import working_size
+
+    assert working_size(640, 272, 256) == (256, 109)
+    assert working_size(272, 640, 256) == (109, 256)          # the same frame, turned
+    assert working_size(200, 100, 256) == (200, 100)          # never enlarged
+    assert working_size(854, 480, 256) == (256, 144)          # as before for landscape widths
+    assert working_size(5000, 3, 256) == (256, 1)             # each side at least one pixel
+
+
+def test_masks_and_segmenter_work_on_a_portrait_frame_as_on_its_landscape_turn():
+    from mona_vo.masks import MaskConfig, MonaMasker
+    from mona_vo.segmentation import GrabCutSegmenter
+
+    m = MonaMasker(MaskConfig(), None)
+    m._size = (272, 640)
+    assert m._analysis_size() == (109, 256)
+    small, sx, sy = GrabCutSegmenter()._work(np.zeros((640, 272, 3), np.uint8))
+    assert small.shape[:2] == (256, 109)
