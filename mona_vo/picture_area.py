@@ -29,7 +29,7 @@ import numpy as np
 from mona_vo.conventions import Intrinsics
 
 __all__ = ["PictureArea", "find_picture_area", "picture_area_ahead", "CroppedFrame",
-           "crop_frames"]
+           "crop_frames", "crop_to_picture"]
 
 
 @dataclass(frozen=True)
@@ -169,3 +169,12 @@ def picture_area_ahead(frames: Iterable, n_frames: int = HEAD_FRAMES, **kwargs):
         return iter(()), None
     area = find_picture_area([f.image for f in head[::3]], **kwargs)   # a third is enough
     return itertools.chain(head, it), area
+
+
+def crop_to_picture(frames: Iterable):
+    """The stream cut to its picture (:func:`picture_area_ahead`, :func:`crop_frames`), or as
+    it was when the picture is the whole frame. Returns (stream, area or None: no frames)."""
+    stream, area = picture_area_ahead(frames)
+    if area is None or area.is_whole:
+        return stream, area
+    return crop_frames(stream, area), area

@@ -25,7 +25,7 @@ from mona_vo.config import check_fields, setting
 from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
 from mona_vo.tracking import TRACKERS
 from mona_vo.errors import ConfigError, InputError
-from mona_vo.picture_area import PictureArea, crop_frames, picture_area_ahead
+from mona_vo.picture_area import PictureArea, crop_frames, crop_to_picture
 from mona_vo.vo import VOConfig, VOResult, VisualOdometry
 
 
@@ -273,11 +273,11 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     rereadable = iter(source) is not source
     picture = None
     if config.crop_bars:
-        frames, picture = picture_area_ahead(frames)
+        # Everything from here on sees the picture alone: masks, focal-length estimate, VO.
+        frames, picture = crop_to_picture(frames)
     cropped = picture is not None and not picture.is_whole
     if cropped:
-        # Everything from here on sees the picture alone: masks, focal-length estimate, VO.
-        frames, source = crop_frames(frames, picture), crop_frames(source, picture)
+        source = crop_frames(source, picture)
         intrinsics = _intrinsics_in_picture(intrinsics, picture)
     calibration = None
     if intrinsics is None and config.calibration.mode == "estimate":

@@ -189,7 +189,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
     from data_tools.frames import open_frames
     from data_tools.run_outputs import RunOutputs
     from mona_vo.masks import compute_masks
-    from mona_vo.picture_area import PictureArea, crop_frames, picture_area_ahead
+    from mona_vo.picture_area import PictureArea, crop_to_picture
 
     config = config or PipelineConfig()
     source = open_frames(input_path, stride=stride, max_frames=max_frames)
@@ -205,11 +205,8 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
         bar, update = _progress_bar(len(source), "mona-vo masks", progress)
         t0 = time.perf_counter()
         try:
-            frames, area = source, PictureArea.whole(source.width, source.height)
-            if config.crop_bars:
-                frames, area = picture_area_ahead(source)
-                area = area or PictureArea.whole(source.width, source.height)
-                frames = crop_frames(frames, area)
+            frames, area = crop_to_picture(source) if config.crop_bars else (source, None)
+            area = area or PictureArea.whole(source.width, source.height)
             frames, estimate, camera = camera_ahead(frames, config, *area.size)
             for n, mf in enumerate(compute_masks(remember(frames), config.masks, camera,
                                                  **config.masker_backends()), start=1):
