@@ -216,3 +216,22 @@ def test_vo_bench_paints_the_bars_it_is_asked_for(monkeypatch):
     vb.benchmark(["static"], [0], ["none"], n_frames=3, width=96, height=64)
     assert not seen[0][:7].any() and seen[1][:7].any()
     assert np.array_equal(seen[0][8:56], seen[1][8:56])
+
+
+def test_caller_masks_are_given_in_the_frames_pixels_and_cut_with_them(small_scene, letterboxed):
+    folder, scene = small_scene
+    boxed, _, bar = letterboxed
+    names = [f.name for f in open_frames(folder)]
+    true = [read_mask_png(folder / "masks" / f"{n}.png") for n in names]
+    r = estimate_trajectory(open_frames(boxed), intrinsics=scene.intrinsics, masks=true,
+                            config=apply_overrides(PipelineConfig(), {"vo.refine": "none"}))
+    cut = bar + 2
+    expect = [np.concatenate([np.zeros_like(m[:cut]), m[cut:-cut], np.zeros_like(m[-cut:])]).mean()
+              for m in true]
+    assert r.picture is not None and (r.picture.y0, r.picture.y1) == (cut, 164 - cut)
+    np.testing.assert_allclose(r.mask_coverage, expect)
+    assert (r.width, r.height) == (384, 164)
+    assert (r.intrinsics.cx, r.intrinsics.cy) == (scene.intrinsics.cx, scene.intrinsics.cy)
+    with pytest.raises(Exception, match="mask for frame"):
+        estimate_trajectory(open_frames(boxed), intrinsics=scene.intrinsics,
+                            masks=[m[cut:-cut] for m in true])        # picture-sized: refused
