@@ -54,7 +54,8 @@ from mona_vo.errors import ConfigError, InputError, MonaVoError
 log = logging.getLogger(__name__)
 
 COLUMNS = ("input", "name", "status", "usable", "reason", "frames", "frames_with_pose",
-           "low_confidence_share", "mask_coverage", "keyframes", "reprojection_rmse_px", "seconds",
+           "low_confidence_share", "mask_coverage", "keyframes", "map_segments",
+           "reprojection_rmse_px", "seconds",
            "frames_per_second", "node", "config_hash")
 STATUSES = ("ok", "failed", "skipped")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm")
@@ -73,6 +74,9 @@ class VerdictConfig:
     min_posed_share: float = setting(0.8, ge=0.0, le=1.0)    # fraction of frames with a pose
     max_low_confidence_share: float = setting(0.3, ge=0.0, le=1.0)  # fraction of frames flagged low-confidence
     max_reprojection_rmse_px: float = setting(2.0, gt=0.0)   # final bundle-adjustment reprojection RMSE, px
+    max_map_segments: int = setting(1, ge=1)  # maps the trajectory is made of: after a loss of
+                                              # tracking (a cut between shots) the scale and the
+                                              # pose across the join are not measured
 
     def validate(self) -> None:
         check_fields(self, "verdict.")
@@ -179,6 +183,10 @@ def clip_verdict(summary: dict, config: VerdictConfig | None = None) -> Verdict:
     low = summary.get("low_confidence_share")
     if low is not None and low > config.max_low_confidence_share:
         reasons.append(f"{100 * low:.0f} % of frames low-confidence (> {100 * config.max_low_confidence_share:.0f} %)")
+    segments = summary.get("map_segments")
+    if segments is not None and segments > config.max_map_segments:
+        reasons.append(f"{segments} map segments (> {config.max_map_segments}: tracking was lost, "
+                       f"e.g. at a cut; no pose is measured across it)")
     rmse = summary.get("reprojection_rmse_px")
     if rmse is not None and math.isfinite(rmse) and rmse > config.max_reprojection_rmse_px:
         reasons.append(f"reprojection RMSE {rmse:.2f} px (> {config.max_reprojection_rmse_px:g} px)")
@@ -196,6 +204,7 @@ def summary_from_report(report: dict) -> dict:
         "low_confidence_share": round(len(report.get("low_confidence_frames") or ()) / n, 4) if n else None,
         "mask_coverage": round(float(report.get("mean_mask_coverage") or 0.0), 4),
         "keyframes": int(report.get("keyframes") or 0),
+        "map_segments": len(report["map_segments"]) if "map_segments" in report else None,
         "reprojection_rmse_px": None if rmse is None else round(rmse, 4),
     }
 

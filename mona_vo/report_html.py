@@ -76,6 +76,7 @@ _NUMBERS = (
     ("low_confidence_share", "low-conf %", "pct"),
     ("mask_coverage", "mask %", "pct"),
     ("keyframes", "keyfr.", "{:.0f}"),
+    ("map_segments", "maps", "{:.0f}"),
     ("reprojection_rmse_px", "RMSE px", "{:.2f}"),
     ("seconds", "s", "{:.1f}"),
     ("frames_per_second", "frames/s", "{:.2f}"),

@@ -149,6 +149,10 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "parallax": getattr(vo, "parallax", None),
         "global_refinement": getattr(vo, "refine", None) or None,
         "status_counts": {s: vo.status.count(s) for s in sorted(set(vo.status))},
+        # One entry per map; a new one starts where tracking was lost (a blank stretch, a cut
+        # between shots): each has its own scale, and the pose across a join is not measured.
+        "map_segments": [{"first": result.names[a], "last": result.names[b], "frames": b - a + 1}
+                         for a, b in getattr(vo, "map_segments", [])],
         "low_confidence_frames": low,
         "frame_status": dict(zip(result.names, vo.status)),
         "timestamps": "seconds from file names" if getattr(source, "timestamp_kind", "") == "seconds"

@@ -54,8 +54,8 @@ from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VO
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissimilar_tracks,
                               drift_test, dynamic_test, estimate_pose, interpolate_pose,
                               keyframe_needed, pair_matches, predict_pose, refine_pose,
-                              rotation_free_parallax_px, triangulate_against, typical_speed,
-                              typical_velocity, walk_back)
+                              rotation_free_parallax_px, segment_spans, triangulate_against,
+                              typical_speed, typical_velocity, walk_back)
 
 # Per-frame status strings (FrameStatus values), from most to least trustworthy.
 KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED = (
@@ -192,6 +192,10 @@ class VOResult:
     reprojection_rmse_px: RMSE of the last bundle adjustment (the global one with
                  vo.refine=global), px; NaN when none ran.
     refine:      what the global refinement did ({} when it did not run).
+    map_segments: (first frame, last frame) of each map: a new one starts where tracking was
+                 lost (a blank stretch, a cut between shots). Each has its own scale, and the
+                 pose from one to the next is not measured (the walk is carried on), so a
+                 clip with more than one is one trajectory only up to those joins.
     """
 
     timestamps: np.ndarray
@@ -206,6 +210,7 @@ class VOResult:
     parallax: dict = field(default_factory=dict)
     reprojection_rmse_px: float = float("nan")
     refine: dict = field(default_factory=dict)
+    map_segments: list = field(default_factory=list)
 
     @property
     def low_confidence(self) -> np.ndarray:
@@ -327,7 +332,8 @@ class VisualOdometry:
         built = self.map.keyframes.n > 0
         return VOResult(fr.timestamp[:n].copy(), poses, iskf, status, fr.inliers[:n].copy(),
                         dict(self.timings), dict(self.drops), float(focal), pts.reshape(-1, 3),
-                        self.evidence.as_dict(TRANSLATION_RATIO, built), float(self._rmse), refine)
+                        self.evidence.as_dict(TRANSLATION_RATIO, built), float(self._rmse), refine,
+                        segment_spans(self.map.frame_segments()))
 
     def _walk_back_start(self) -> int:
         """Frames before the first map that kept their rotation alone (the start waited for

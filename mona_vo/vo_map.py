@@ -303,6 +303,15 @@ class VOMap:
             out[sel] = np.einsum("nij,njk->nik", self.keyframes.T_world_cam[ref[sel]], out[sel])
         return out
 
+    def frame_segments(self) -> np.ndarray:
+        """(N,) int64 map segment of each written frame's keyframe (-1: posed alone, not on
+        a map: rotation-only, extrapolated)."""
+        ref = self.frames.ref_kf[:self.frames.n]
+        out = np.full(len(ref), -1, np.int64)
+        on = ref >= 0
+        out[on] = self.keyframes.segment[ref[on]]
+        return out
+
     def window_observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(obs_kf rows, obs_lm, obs_uv float64, obs_masked) of the window keyframes."""
         idx = self.keyframes.observation_index(self.window)

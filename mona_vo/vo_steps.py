@@ -288,6 +288,17 @@ def walk_back(T_first: np.ndarray, R_world_cam: np.ndarray, velocity: np.ndarray
     return out
 
 
+def segment_spans(frame_segment: np.ndarray) -> list[tuple[int, int]]:
+    """(first frame, last frame) of each map segment, in the order the segments began, from the
+    (N,) segment of each frame (-1: on no map; such frames belong to no span)."""
+    seg = np.asarray(frame_segment, np.int64)
+    spans = []
+    for s in np.unique(seg[seg >= 0]):
+        at = np.flatnonzero(seg == s)
+        spans.append((int(at[0]), int(at[-1])))
+    return sorted(spans)
+
+
 def interpolate_pose(Ta: np.ndarray, Tb: np.ndarray, a: float) -> np.ndarray:
     """Pose a of the way from Ta to Tb (rotation by slerp, centre linearly)."""
     R = Slerp([0, 1], Rotation.from_matrix([Ta[:3, :3], Tb[:3, :3]]))(a).as_matrix()

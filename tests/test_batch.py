@@ -45,6 +45,12 @@ def test_verdict_follows_its_thresholds():
     # An unknown RMSE (no bundle adjustment ran) is not held against the clip.
     assert clip_verdict({**good, "reprojection_rmse_px": None}, cfg).usable
     assert clip_verdict({**good, "frames_with_pose": 20}, VerdictConfig(min_posed_share=0.5)).usable
+    # A trajectory made of two maps (tracking lost: a cut) has a join nothing measured.
+    v = clip_verdict({**good, "map_segments": 2}, cfg)
+    assert not v.usable and "2 map segments" in v.reasons[0]
+    assert clip_verdict({**good, "map_segments": 1}, cfg).usable
+    assert clip_verdict({**good, "map_segments": 2}, VerdictConfig(max_map_segments=2)).usable
+    assert clip_verdict({**good, "map_segments": None}, cfg).usable     # an older report
 
 
 @pytest.mark.parametrize("key, value", [("verdict.min_posed_share", "1.5"), ("verdict.min_frames", "0"),

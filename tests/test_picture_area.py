@@ -169,6 +169,7 @@ def test_run_writes_full_frame_masks_and_reports_the_picture(letterboxed, tmp_pa
     assert not stack[:, :bar + 2].any() and not stack[:, h - bar - 2:].any()   # ... never in a bar
     saved = json.loads((tmp_path / "run" / "report.json").read_text())
     assert saved["picture_area"]["cropped"] is True
+    assert saved["map_segments"] == [{"first": "00000", "last": "00023", "frames": 24}]
 
     only = masks_only(boxed, tmp_path / "masks", progress=False)
     assert only["picture_area"] == report["picture_area"]

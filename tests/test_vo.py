@@ -158,6 +158,10 @@ def test_frames_where_tracking_is_lost_carry_the_walk_on_until_a_new_map():
     assert res.drops["tracking_lost"] >= 1
     gap = [i for i, s in enumerate(res.status) if s == "extrapolated"]
     assert gap and set(gap) <= {12, 13, 14}
+    # Two maps, the gap on neither: the report says where the trajectory is joined.
+    assert len(res.map_segments) == 2
+    (a0, a1), (b0, b1) = res.map_segments
+    assert a0 == 0 and a1 < gap[0] and b0 > gap[-1] and b1 == 29
     c = res.poses[:, :3, 3]
     usual = np.median(np.linalg.norm(np.diff(c[:11], axis=0), axis=1))
     steps = np.linalg.norm(np.diff(c[gap[0] - 1:16], axis=0), axis=1)

@@ -398,3 +398,11 @@ def test_pair_matches_tracks_with_the_given_trackers_lucas_kanade_settings(monke
     steps.pair_matches(a, a, uv, uv, None, None, 50, 0.5, LKTracker(win_size=15, levels=2, iterations=9))
     steps.pair_matches(a, a, uv, uv, None, None, 50, 0.5)
     assert seen == [((15, 15), 2, 9), ((21, 21), 3, 30)]
+
+
+def test_segment_spans_give_each_maps_first_and_last_frame_in_order():
+    from mona_vo.vo_steps import segment_spans
+
+    assert segment_spans(np.array([-1, 0, 0, 0, -1, -1, 1, 1, -1])) == [(1, 3), (6, 7)]
+    assert segment_spans(np.array([-1, -1])) == []
+    assert segment_spans(np.array([0, 0, 0])) == [(0, 2)]
