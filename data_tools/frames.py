@@ -9,6 +9,7 @@ Images are RGB here (OpenCV decodes BGR; the conversion happens in this module a
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import math
 import os
@@ -42,6 +43,15 @@ class Frame:
     timestamp: float  # seconds, frame number or index: see FrameSource.timestamp_kind
     name: str  # file stem ('00012', 'frame_0001', '1548339827.58438'); video: f'{index:06d}'
     image: np.ndarray  # (H, W, 3) uint8 RGB
+
+
+def read_ahead(frames, n: int) -> tuple[list, Iterator]:
+    """The first ``n`` frames of a stream, and the whole stream again (those frames replayed
+    before the rest): how a stage that must see the head of a clip first (the focal-length
+    estimate, the letterbox test) keeps a one-pass input (a video, an iterator) whole."""
+    it = iter(frames)
+    head = list(itertools.islice(it, n))
+    return head, itertools.chain(head, it)
 
 
 def natural_key(name: str) -> tuple:

@@ -54,8 +54,7 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     quality = {"mask_j": [], "mask_fp": []}
 
     def judge(out):
-        # The masks `run` hands the VO, against the truth (with the VO's dynamic tracks as
-        # evidence, masks.evidence.vo_gain, they differ from `mona-vo masks`).
+        # The masks `run` computed for these frames (full-frame pixels), against the truth.
         if out.mona is not None:
             gt_mask = gt_masks[out.index]
             quality["mask_j"].append(region_similarity(out.mask, gt_mask))

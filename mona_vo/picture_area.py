@@ -19,7 +19,6 @@ where a bar was found (video coding rings next to the bar's edge). Bars that are
 """
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
@@ -163,12 +162,13 @@ def picture_area_ahead(frames: Iterable, n_frames: int = HEAD_FRAMES, **kwargs):
     """Read the first ``n_frames`` of ``frames`` and find the picture in them
     (:func:`find_picture_area`). Returns (the whole stream again, the area, or None when
     there are no frames)."""
-    it = iter(frames)
-    head = list(itertools.islice(it, n_frames))
+    from data_tools.frames import read_ahead
+
+    head, stream = read_ahead(frames, n_frames)
     if not head:
-        return iter(()), None
+        return stream, None
     area = find_picture_area([f.image for f in head[::3]], **kwargs)   # a third is enough
-    return itertools.chain(head, it), area
+    return stream, area
 
 
 def crop_to_picture(frames: Iterable):

@@ -168,17 +168,15 @@ class _CallerMasks:
 def estimate_focal_ahead(frames: Iterable, config: "PipelineConfig"):
     """Read the first ``config.calibration.frames`` frames, estimate the focal length from them
     (:func:`mona_vo.calibration.estimate_focal`) and return (the whole stream again, estimate)."""
-    import itertools
-
+    from data_tools.frames import read_ahead
     from mona_vo.calibration import estimate_focal
 
-    it = iter(frames)
-    head = list(itertools.islice(it, config.calibration.frames))
+    head, stream = read_ahead(frames, config.calibration.frames)
     if len(head) < 3:
-        return itertools.chain(head, it), None
+        return stream, None
     h, w = head[0].image.shape[:2]
     est = estimate_focal([f.image for f in head], config.guessed_intrinsics(w, h), config.calibration)
-    return itertools.chain(head, it), est
+    return stream, est
 
 
 def camera_without_calib(estimate, config: "PipelineConfig", width: int, height: int) -> Intrinsics:
