@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from data_tools.bars import KINDS as BAR_KINDS, add_bars
+from data_tools.repeats import KINDS as REPEAT_KINDS, shown_images, shown_order
 from data_tools.synthetic import SceneConfig, SyntheticScene
 from eval.mask_metrics import region_similarity
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
@@ -47,9 +48,10 @@ def render_sequence(preset: str, seed: int, n_frames: int, width: int, height: i
 
 
 def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
-                calib: str = "given") -> dict:
+                calib: str = "given", gt_poses: np.ndarray | None = None) -> dict:
     """One run. ``calib``: ``given`` passes the scene's true intrinsics; ``estimate`` passes
-    none, as `mona-vo run` without --calib (the focal length is estimated, or guessed)."""
+    none, as `mona-vo run` without --calib (the focal length is estimated, or guessed).
+    ``gt_poses``: the true pose of each frame when it is not the scene's (repeated frames)."""
     masks = {"none": None, "gt": list(gt_masks), "mona": "mona"}[variant]
     quality = {"mask_j": [], "mask_fp": []}
 
@@ -64,7 +66,8 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     result = estimate_trajectory(frames, intrinsics=scene.intrinsics if calib == "given" else None,
                                  masks=masks, config=config, on_frame=judge)
     wall = time.perf_counter() - t0
-    gt = Trajectory(np.arange(len(frames), dtype=float), scene.poses())
+    gt = Trajectory(np.arange(len(frames), dtype=float),
+                    scene.poses() if gt_poses is None else gt_poses)
     est = Trajectory(result.vo.timestamps, result.vo.poses)
     nan = float("nan")
     errors = {"ate": nan, "ate_pct": nan, "rpe_trans": nan, "rpe_rot_deg": nan, "path_m": 0.0,
@@ -89,6 +92,7 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
         "final_focal_error_pct": 100.0 * (result.vo.focal - true_fx) / true_fx,
         "frames": n, "frames_with_pose": int(np.isfinite(result.vo.poses).all(axis=(1, 2)).sum()),
         "low_confidence": int(result.vo.low_confidence.sum()),
+        "repeated_frames": int(np.sum(result.repeat_of >= 0)) if result.repeat_of is not None else 0,
         "keyframes": int(result.vo.is_keyframe.sum()),
         "vo_fps": n / vo_seconds if vo_seconds > 0 else float("nan"),
         "mask_ms_per_frame": 1000 * mask_seconds / n,
@@ -102,12 +106,15 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
 
 def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
               config: PipelineConfig | None = None, on_row=None, repeats: int = 1,
-              calib: str = "given", bars: str | None = None) -> list[dict]:
+              calib: str = "given", bars: str | None = None,
+              frame_repeats: str | None = None) -> list[dict]:
     """One row per preset x seed x variant x repeat. ``repeats`` > 1 runs each sequence again to
     measure the run-to-run spread of one input (0 when the pipeline is deterministic);
     ``calib`` as in :func:`run_variant`; ``bars``: paint bars of this kind over every frame
     (:func:`data_tools.bars.add_bars`; the true masks keep the movers under the bars, which no
-    mask can find)."""
+    mask can find); ``frame_repeats``: show the frames with repeats of this kind
+    (:mod:`data_tools.repeats`; each shown frame's true pose and mask are those of the frame
+    shown, but for ``stutter``, whose held frame keeps its own time's)."""
     config = config or PipelineConfig()
     rows = []
     for preset in presets:
@@ -115,11 +122,18 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
             scene, frames, masks = render_sequence(preset, seed, n_frames, width, height)
             if bars:
                 frames = [_Frame(f.index, f.timestamp, f.name, add_bars(f.image, bars)) for f in frames]
+            gt_poses = None
+            if frame_repeats:
+                order = shown_order(len(frames), frame_repeats)
+                frames = [_Frame(k, float(k), f"{k:05d}", im) for k, im in
+                          enumerate(shown_images([f.image for f in frames], frame_repeats))]
+                gt_poses = scene.poses()[order if frame_repeats != "stutter" else slice(None)]
+                masks = [masks[i] for i in (order if frame_repeats != "stutter" else range(len(order)))]
             coverage = float(np.mean([m.mean() for m in masks]))
             for variant in variants:
                 for repeat in range(repeats):
                     row = {"preset": preset, "seed": seed, "repeat": repeat, "coverage": coverage,
-                           **run_variant(scene, frames, masks, variant, config, calib)}
+                           **run_variant(scene, frames, masks, variant, config, calib, gt_poses)}
                     rows.append(row)
                     if on_row is not None:
                         on_row(row)
@@ -183,6 +197,7 @@ def format_row(r: dict) -> str:
             f"masks {r['mask_ms_per_frame']:5.1f} ms/frame  low-conf {r['low_confidence']}"
             + (f"  focal {r['focal_error_pct']:+.1f}% -> {r['final_focal_error_pct']:+.1f}%"
                if r.get("calib") == "estimate" else "")
+            + (f"  repeats {r['repeated_frames']}" if r.get("repeated_frames") else "")
             + (f"  mask J {r['mask_j']:.3f}, false positives {r['mask_fp_pct']:.2f} %"
                if np.isfinite(r.get("mask_j", float("nan"))) else "")
             + (f"  rot {r['rot_rmse_deg']:.3f} deg, est. translation {r['est_translation_extent']:.3g}"
@@ -245,6 +260,9 @@ def main(argv=None) -> int:
     ap.add_argument("--bars", choices=BAR_KINDS,
                     help="paint bars of this kind over every frame (data_tools.bars), as "
                          "online videos carry them")
+    ap.add_argument("--frame-repeats", choices=REPEAT_KINDS,
+                    help="show the frames with repeats of this kind (data_tools.repeats), as "
+                         "online videos carry them")
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of each sequence, to measure the run-to-run spread (default 1)")
     args = ap.parse_args(argv)
@@ -255,7 +273,7 @@ def main(argv=None) -> int:
     rows = benchmark(args.presets.split(","), parse_seeds(args.seeds), args.variants.split(","),
                      n_frames=args.frames, width=w, height=h, config=cfg,
                      on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats),
-                     calib=args.calib, bars=args.bars)
+                     calib=args.calib, bars=args.bars, frame_repeats=args.frame_repeats)
     print()
     summary = summarize(rows)
     print(format_summary(summary))

@@ -180,6 +180,8 @@ class MaskFrame:
     reliable:       whether the VO should use the mask: coverage at most
                     ``vo_max_coverage`` and stability (when defined) at least
                     ``vo_min_stability``; else the VO relies on its own residual test.
+    repeat_of:      the index of the frame this one repeats (``push_repeat``: its mask and all
+                    else are that frame's), -1 for a frame analysed.
     """
 
     index: int
@@ -193,6 +195,7 @@ class MaskFrame:
     evidence: np.ndarray | None = None
     stability: float = float("nan")
     reliable: bool = True
+    repeat_of: int = -1
 
     @property
     def vo_mask(self) -> np.ndarray | None:
@@ -267,6 +270,9 @@ class MonaMasker:
         self._prev_image: np.ndarray | None = None      # the one before it
         self._logodds: np.ndarray | None = None         # accumulated evidence, last frame emitted
         self._found: np.ndarray | None = None           # and its regions (objects followed)
+        self._repeats: dict[int, list[int]] = {}        # position -> indices of the frames that
+                                                        # repeat it (push_repeat), until emitted
+        self._last_out: MaskFrame | None = None         # the last mask emitted
 
     # ------------------------------------------------------------------ buffers (for tests)
     def buffered_frames(self) -> int:
@@ -303,6 +309,23 @@ class MonaMasker:
         if window is not None:
             self._classify(window, final=False)
         return self._emit_ready(final=False)
+
+    def push_repeat(self, frame_index: int) -> list[MaskFrame]:
+        """Feed a frame that repeats the last one pushed (:mod:`mona_vo.repeats`): it is not
+        analysed, and gets that frame's mask (a copy of its MaskFrame under its own index, with
+        no seconds spent) right after it. Returns the masks that became ready."""
+        if self._n == 0:
+            raise InputError(f"frame {frame_index}: a repeat needs a frame before it")
+        source = self._n - 1
+        if source < self._next_out:     # already emitted (only after a flush)
+            return [self._copy_for(self._last_out, frame_index)]
+        self._repeats.setdefault(source, []).append(int(frame_index))
+        return []
+
+    @staticmethod
+    def _copy_for(mf: MaskFrame, frame_index: int) -> MaskFrame:
+        return dataclasses.replace(mf, index=int(frame_index), seconds={},
+                                   repeat_of=mf.index if mf.repeat_of < 0 else mf.repeat_of)
 
     def flush(self) -> list[MaskFrame]:
         """Masks of every frame not yet returned (call once, at the end of the input)."""
@@ -432,7 +455,9 @@ class MonaMasker:
                 break
             if not final and p + self.config.motion_gap > last:
                 break
-            out.append(self._emit(p, last))
+            self._last_out = self._emit(p, last)
+            out.append(self._last_out)
+            out.extend(self._copy_for(self._last_out, i) for i in self._repeats.pop(p, ()))
             self._next_out += 1
         return out
 
@@ -600,15 +625,24 @@ def _to_full_resolution_boxes(xyxy: np.ndarray, sx: float, sy: float) -> np.ndar
 
 
 def compute_masks(frames: Iterable, config: MaskConfig | None = None,
-                  intrinsics: Intrinsics | None = None, **backends) -> Iterator[MaskFrame]:
+                  intrinsics: Intrinsics | None = None, *, repeat_max_diff: float = 0.0,
+                  **backends) -> Iterator[MaskFrame]:
     """Masks of a stream of frames (objects with ``index`` and ``image`` attributes, e.g.
     :class:`data_tools.frames.Frame`, or ``(index, image)`` pairs), one per frame, in order.
+    ``repeat_max_diff`` > 0: a frame that repeats the last distinct one within that many grey
+    levels (:class:`mona_vo.repeats.RepeatDetector`) is not analysed and gets its mask.
     ``backends``: MonaMasker's keyword arguments (tracker, device, weights, ...)."""
+    from mona_vo.repeats import RepeatDetector
+
     masker = MonaMasker(config, intrinsics, **backends)
+    repeats = RepeatDetector(repeat_max_diff)
     for frame in frames:
         if isinstance(frame, tuple):
             index, image = frame
         else:
             index, image = frame.index, frame.image
-        yield from masker.push(index, image)
+        if repeats.is_repeat(image):
+            yield from masker.push_repeat(index)
+        else:
+            yield from masker.push(index, image)
     yield from masker.flush()

@@ -13,6 +13,7 @@ finish, so memory stays flat however long the video is (but for those packed mas
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -26,6 +27,7 @@ from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
 from mona_vo.tracking import TRACKERS
 from mona_vo.errors import ConfigError, InputError
 from mona_vo.picture_area import PictureArea, crop_frames, crop_to_picture
+from mona_vo.repeats import RepeatDetector
 from mona_vo.vo import VOConfig, VOResult, VisualOdometry
 
 
@@ -55,6 +57,12 @@ class PipelineConfig:
                                             # frames and run on the picture inside them
                                             # (mona_vo.picture_area); masks and intrinsics stay
                                             # in full-frame pixels
+    repeat_max_diff: float = setting(4.0, ge=0, le=255)  # a frame no 16 x 16 block of which
+                                            # differs from the last distinct frame by more than
+                                            # this many grey levels (mean) is a repeat
+                                            # (pulldown, a stalled stream): it takes that
+                                            # frame's pose and mask unprocessed
+                                            # (mona_vo.repeats); 0 = off
     calibration: FocalConfig = field(default_factory=FocalConfig)  # focal length without
                                             # --calib (mona_vo.calibration)
     vo: VOConfig = field(default_factory=VOConfig)  # visual odometry
@@ -111,6 +119,8 @@ class RunResult:
     mask_coverage: np.ndarray       # (N,) fraction of each frame's pixels inside its mask
     calibration: Any = None         # mona_vo.calibration.FocalEstimate without given intrinsics
     picture: PictureArea | None = None  # the picture inside bars the run used (crop_bars)
+    repeat_of: np.ndarray | None = None  # (N,) int: the frame each frame repeats (its pose and
+                                    # mask are that frame's), -1 for a distinct frame
 
     @property
     def n_frames(self) -> int:
@@ -249,6 +259,18 @@ def _second_pass(source: Iterable, first: VOResult, vo_masks: list, size, start:
     return result
 
 
+def _with_repeats(vo: VOResult, rows: np.ndarray, repeat_of: np.ndarray,
+                  timestamps: list[float]) -> VOResult:
+    """The VO's result (one row per distinct frame) as one row per input frame: a repeat
+    takes its frame's pose and status, is no keyframe, and keeps its own timestamp."""
+    segments = [(int(np.searchsorted(rows, a)), int(np.searchsorted(rows, b, side="right")) - 1)
+                for a, b in vo.map_segments]
+    return dataclasses.replace(vo, timestamps=np.asarray(timestamps, np.float64),
+                               poses=vo.poses[rows], is_keyframe=vo.is_keyframe[rows] & (repeat_of < 0),
+                               status=[vo.status[r] for r in rows], inliers=vo.inliers[rows],
+                               map_segments=segments)
+
+
 def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                         config: PipelineConfig | None = None,
                         on_frame: Callable[[FrameOutput], None] | None = None,
@@ -286,6 +308,12 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     vo: VisualOdometry | None = None
     names: list[str] = []
     coverage: list[float] = []
+    stamps: list[float] = []
+    # A repeated frame (mona_vo.repeats) is not processed: rows[k] is the VO row of frame k,
+    # repeat_of[k] the frame it repeats (-1: its own).
+    repeats = RepeatDetector(config.repeat_max_diff)
+    rows: list[int] = []
+    repeat_of: list[int] = []
     first_intr: Intrinsics | None = None
     size = None
 
@@ -306,26 +334,33 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                  and config.vo.global_camera != "none" and rereadable)
     vo_masks: list = []
 
-    def feed(frame, mask, mona=None, vo_mask=None):
+    def feed(frame, repeat, mask, mona=None, vo_mask=None):
         # vo_mask: what the VO sees; MONA's masks reach it only when reliable
         # (MaskFrame.reliable: not too large, not flickering), else the VO relies on its own
         # residual test for that frame. Caller masks are used as given.
         nonlocal vo, first_intr
         if mona is None:
             vo_mask = mask
-        intr = _intrinsics_for(intrinsics, frame, *size)
-        if vo is None:
-            first_intr = intr or camera_without_calib(calibration, config, *size)
-            vo = VisualOdometry(config.vo, size[0], size[1], first_intr,
-                                tracker=config.build_tracker(), camera_known=intr is not None)
         full_mask = picture.uncrop(mask) if cropped else mask
         if on_frame is not None:
             on_frame(FrameOutput(frame.index, frame.name, frame.timestamp,
                                  getattr(frame, "full", frame.image), full_mask, mona,
                                  (picture.x0, picture.y0) if cropped else (0, 0)))
-        vo.step(frame.image, timestamp=frame.timestamp, mask=vo_mask, intrinsics=intr)
-        if may_rerun:
-            vo_masks.append(None if vo_mask is None else np.packbits(vo_mask))
+        if repeat:
+            rows.append(rows[-1])
+            repeat_of.append(repeat_of[-1] if repeat_of[-1] >= 0 else len(names) - 1)
+        else:
+            intr = _intrinsics_for(intrinsics, frame, *size)
+            if vo is None:
+                first_intr = intr or camera_without_calib(calibration, config, *size)
+                vo = VisualOdometry(config.vo, size[0], size[1], first_intr,
+                                    tracker=config.build_tracker(), camera_known=intr is not None)
+            vo.step(frame.image, timestamp=frame.timestamp, mask=vo_mask, intrinsics=intr)
+            if may_rerun:
+                vo_masks.append(None if vo_mask is None else np.packbits(vo_mask))
+            rows.append(rows[-1] + 1 if rows else 0)
+            repeat_of.append(-1)
+        stamps.append(frame.timestamp)
         names.append(frame.name)
         coverage.append(float(full_mask.mean()) if full_mask is not None else 0.0)
         if progress is not None:
@@ -333,13 +368,13 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
 
     def drain(mask_frames):
         for mf in mask_frames:
-            frame = pending.popleft()
+            frame, repeat = pending.popleft()
             if mf.index != frame.index:
                 raise RuntimeError(f"mask for frame {mf.index} arrived for frame {frame.index}")
             for stage, sec in (getattr(mf, "seconds", None) or {}).items():
                 key = f"masks.{stage}"
                 timings[key] = timings.get(key, 0.0) + sec
-            feed(frame, mf.mask, mf, getattr(mf, "vo_mask", mf.mask))
+            feed(frame, repeat, mf.mask, mf, getattr(mf, "vo_mask", mf.mask))
 
     full_size = None
     for frame in frames:
@@ -351,6 +386,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                              f"{full_size[0]} x {full_size[1]}")
         h, w = frame.image.shape[:2]
         size = (w, h)
+        repeat = repeats.is_repeat(frame.image)
         if use_mona:
             if masker is None:
                 from mona_vo.masks import MonaMasker
@@ -359,24 +395,33 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                 masker = MonaMasker(config.masks, _intrinsics_for(intrinsics, frame, w, h)
                                     or camera_without_calib(calibration, config, w, h),
                                     **config.masker_backends())
-            pending.append(frame)
-            drain(masker.push(frame.index, frame.image))
+            pending.append((frame, repeat))
+            drain(masker.push_repeat(frame.index) if repeat else masker.push(frame.index, frame.image))
         else:
-            feed(frame, caller.get(frame) if caller is not None else None)
+            feed(frame, repeat, caller.get(frame) if caller is not None else None)
     if masker is not None:
         drain(masker.flush())
     if vo is None or len(names) < 2:
         where = getattr(source, "path", None)
         raise InputError(f"{str(where) + ': ' if where is not None else ''}a trajectory needs at "
                          f"least 2 frames; the input has {len(names)}")
+    if rows[-1] < 1:
+        where = getattr(source, "path", None)
+        raise InputError(f"{str(where) + ': ' if where is not None else ''}a trajectory needs at "
+                         f"least 2 distinct frames; all {len(names)} frames show the first one "
+                         f"again (repeat_max_diff {config.repeat_max_diff:g})")
     result = vo.finish()
     for stage, sec in result.timings.items():
         timings[f"vo.{stage}"] = sec
+    repeat_of = np.array(repeat_of, np.int64)
     if may_rerun:
-        result = _second_pass(source, result, vo_masks, size, first_intr, config, timings)
+        distinct = (f for f, r in zip(source, repeat_of) if r < 0)
+        result = _second_pass(distinct, result, vo_masks, size, first_intr, config, timings)
+    if (repeat_of >= 0).any():
+        result = _with_repeats(result, np.array(rows), repeat_of, stamps)
     timings["total"] = time.perf_counter() - t_start
     if calibration is not None:
         timings["calibration"] = calibration.seconds
     return RunResult(result, names, full_size[0], full_size[1],
                      picture.to_frame(first_intr) if cropped else first_intr, timings,
-                     np.array(coverage), calibration, picture)
+                     np.array(coverage), calibration, picture, repeat_of)

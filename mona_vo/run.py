@@ -154,12 +154,23 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "map_segments": [{"first": result.names[a], "last": result.names[b], "frames": b - a + 1}
                          for a, b in getattr(vo, "map_segments", [])],
         "low_confidence_frames": low,
+        # Frames that show the frame before them again (pulldown, a stalled stream): not
+        # processed, they took that frame's pose and mask (mona_vo.repeats).
+        "repeated_frames": _repeated_frames(result),
         "frame_status": dict(zip(result.names, vo.status)),
         "timestamps": "seconds from file names" if getattr(source, "timestamp_kind", "") == "seconds"
                       else "frame numbers",
         "config": to_dict(config),
         "machine": {"cpu_count": _cpu_count(), "platform": platform.platform()},
     }
+
+
+def _repeated_frames(result) -> dict[str, str]:
+    """{frame name: the name of the frame it repeats} (mona_vo.repeats)."""
+    rep = getattr(result, "repeat_of", None)
+    if rep is None:
+        return {}
+    return {result.names[k]: result.names[int(j)] for k, j in enumerate(rep) if j >= 0}
 
 
 def _camera_source(estimated: bool, config: PipelineConfig) -> str:
@@ -199,6 +210,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
     source = open_frames(input_path, stride=stride, max_frames=max_frames)
     names = {}
     coverage = []
+    repeated = {}
 
     def remember(src):
         for f in src:
@@ -213,9 +225,12 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
             area = area or PictureArea.whole(source.width, source.height)
             frames, estimate, camera = camera_ahead(frames, config, *area.size)
             for n, mf in enumerate(compute_masks(remember(frames), config.masks, camera,
+                                                 repeat_max_diff=config.repeat_max_diff,
                                                  **config.masker_backends()), start=1):
                 mask = area.uncrop(mf.mask)
-                outputs.add_mask(names.pop(mf.index), mask)
+                outputs.add_mask(names[mf.index], mask)
+                if mf.repeat_of >= 0:
+                    repeated[names[mf.index]] = names[mf.repeat_of]
                 coverage.append(float(mask.mean()))
                 update(n)
             camera = area.to_frame(camera)
@@ -227,6 +242,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
                   "frames_per_second": round(len(coverage) / seconds, 2) if seconds > 0 else None,
                   "mean_mask_coverage": float(np.mean(coverage)) if coverage else 0.0,
                   "picture_area": area.as_dict(),
+                  "repeated_frames": repeated,
                   "calibration": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                                   "source": _camera_source(getattr(estimate, "used", False),
                                                            config),
