@@ -271,6 +271,127 @@ def _with_repeats(vo: VOResult, rows: np.ndarray, repeat_of: np.ndarray,
                                map_segments=segments)
 
 
+@dataclass
+class _Stream:
+    """The frames as a run sees them (:func:`_open_stream`)."""
+
+    frames: Iterable            # what the run reads: each frame's picture, the head replayed
+    source: Iterable            # the same frames to read again (a second pass)
+    rereadable: bool            # whether ``source`` can be read again (not an iterator)
+    picture: PictureArea | None  # the picture found (crop_bars; the whole frame without bars)
+    intrinsics: Any             # the caller's intrinsics, in the picture's pixels
+    calibration: Any            # the focal-length estimate without intrinsics, else None
+
+    @property
+    def cut(self) -> PictureArea | None:
+        """The picture when bars were cut off, else None."""
+        return self.picture if self.picture is not None and not self.picture.is_whole else None
+
+    def full_mask(self, mask):
+        return mask if self.cut is None or mask is None else self.cut.uncrop(mask)
+
+
+def _open_stream(frames: Iterable, intrinsics, config: PipelineConfig) -> _Stream:
+    """Find the picture inside bars and, without intrinsics, the focal length from the first
+    frames (both read ahead, then replayed): everything after sees the picture alone."""
+    source = frames
+    rereadable = iter(source) is not source
+    picture = None
+    if config.crop_bars:
+        # Everything from here on sees the picture alone: masks, focal-length estimate, VO.
+        frames, picture = crop_to_picture(frames)
+    if picture is not None and not picture.is_whole:
+        source = crop_frames(source, picture)
+        intrinsics = _intrinsics_in_picture(intrinsics, picture)
+    calibration = None
+    if intrinsics is None and config.calibration.mode == "estimate":
+        # Without intrinsics the focal length comes from the first frames (read ahead, then
+        # replayed); the VO uses it, the report says how it was found.
+        frames, calibration = estimate_focal_ahead(frames, config)
+    return _Stream(frames, source, rereadable, picture, intrinsics, calibration)
+
+
+class _Recorder:
+    """Takes each frame once its mask is known, in order: hands it to ``on_frame`` and to the VO
+    (a repeat, :mod:`mona_vo.repeats`, only to ``on_frame``) and keeps what the result needs."""
+
+    def __init__(self, config: PipelineConfig, stream: _Stream, on_frame, progress):
+        self.config, self.stream, self.on_frame, self.progress = config, stream, on_frame, progress
+        self.vo: VisualOdometry | None = None
+        self.first_intr: Intrinsics | None = None
+        self.size: tuple[int, int] | None = None        # (W, H) of the picture
+        self.names: list[str] = []
+        self.coverage: list[float] = []
+        self.stamps: list[float] = []
+        self.rows: list[int] = []           # the VO row of each frame (a repeat: its frame's)
+        self.repeat_of: list[int] = []      # the frame each frame repeats, -1: its own
+        # Without intrinsics the VO may run twice (_second_pass); the masks it saw are kept for
+        # that, packed to a bit per pixel.
+        self.may_rerun = (stream.intrinsics is None and config.vo.refine == "global"
+                          and config.vo.global_camera != "none" and stream.rereadable)
+        self.vo_masks: list = []
+
+    def add(self, frame, repeat: bool, mask, mona=None, vo_mask=None) -> None:
+        # vo_mask: what the VO sees; MONA's masks reach it only when reliable
+        # (MaskFrame.reliable: not too large, not flickering), else the VO relies on its own
+        # residual test for that frame. Caller masks are used as given.
+        if mona is None:
+            vo_mask = mask
+        full_mask = self.stream.full_mask(mask)
+        pic = self.stream.cut
+        if self.on_frame is not None:
+            self.on_frame(FrameOutput(frame.index, frame.name, frame.timestamp,
+                                      getattr(frame, "full", frame.image), full_mask, mona,
+                                      (pic.x0, pic.y0) if pic is not None else (0, 0)))
+        if repeat:
+            self.rows.append(self.rows[-1])
+            last = self.repeat_of[-1]
+            self.repeat_of.append(last if last >= 0 else len(self.names) - 1)
+        else:
+            self._step(frame, vo_mask)
+            self.rows.append(self.rows[-1] + 1 if self.rows else 0)
+            self.repeat_of.append(-1)
+        self.stamps.append(frame.timestamp)
+        self.names.append(frame.name)
+        self.coverage.append(float(full_mask.mean()) if full_mask is not None else 0.0)
+        if self.progress is not None:
+            self.progress(len(self.names))
+
+    def _step(self, frame, vo_mask) -> None:
+        intr = _intrinsics_for(self.stream.intrinsics, frame, *self.size)
+        if self.vo is None:
+            self.first_intr = intr or camera_without_calib(self.stream.calibration, self.config,
+                                                           *self.size)
+            self.vo = VisualOdometry(self.config.vo, self.size[0], self.size[1], self.first_intr,
+                                     tracker=self.config.build_tracker(),
+                                     camera_known=intr is not None)
+        self.vo.step(frame.image, timestamp=frame.timestamp, mask=vo_mask, intrinsics=intr)
+        if self.may_rerun:
+            self.vo_masks.append(None if vo_mask is None else np.packbits(vo_mask))
+
+    def finish(self, timings: dict) -> VOResult:
+        where = getattr(self.stream.source, "path", None)
+        where = f"{where}: " if where is not None else ""
+        if self.vo is None or len(self.names) < 2:
+            raise InputError(f"{where}a trajectory needs at least 2 frames; the input has "
+                             f"{len(self.names)}")
+        if self.rows[-1] < 1:
+            raise InputError(f"{where}a trajectory needs at least 2 distinct frames; all "
+                             f"{len(self.names)} frames show the first one again "
+                             f"(repeat_max_diff {self.config.repeat_max_diff:g})")
+        result = self.vo.finish()
+        for stage, sec in result.timings.items():
+            timings[f"vo.{stage}"] = sec
+        repeat_of = np.array(self.repeat_of, np.int64)
+        if self.may_rerun:
+            distinct = (f for f, r in zip(self.stream.source, repeat_of) if r < 0)
+            result = _second_pass(distinct, result, self.vo_masks, self.size, self.first_intr,
+                                  self.config, timings)
+        if (repeat_of >= 0).any():
+            result = _with_repeats(result, np.array(self.rows), repeat_of, self.stamps)
+        return result
+
+
 def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                         config: PipelineConfig | None = None,
                         on_frame: Callable[[FrameOutput], None] | None = None,
@@ -289,82 +410,16 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     config = config or PipelineConfig()
     config.validate()
     t_start = time.perf_counter()
-    source = frames
-    rereadable = iter(source) is not source
-    picture = None
-    if config.crop_bars:
-        # Everything from here on sees the picture alone: masks, focal-length estimate, VO.
-        frames, picture = crop_to_picture(frames)
-    cropped = picture is not None and not picture.is_whole
-    if cropped:
-        source = crop_frames(source, picture)
-        intrinsics = _intrinsics_in_picture(intrinsics, picture)
-    calibration = None
-    if intrinsics is None and config.calibration.mode == "estimate":
-        # Without intrinsics the focal length comes from the first frames (read ahead, then
-        # replayed); the VO uses it, the report says how it was found.
-        frames, calibration = estimate_focal_ahead(frames, config)
-    timings: dict[str, float] = {}
-    vo: VisualOdometry | None = None
-    names: list[str] = []
-    coverage: list[float] = []
-    stamps: list[float] = []
-    # A repeated frame (mona_vo.repeats) is not processed: rows[k] is the VO row of frame k,
-    # repeat_of[k] the frame it repeats (-1: its own).
+    if isinstance(masks, str) and masks != "mona":
+        raise ConfigError(f"masks must be 'mona', None, an iterable or a callable, not '{masks}'")
+    stream = _open_stream(frames, intrinsics, config)
+    use_mona = masks == "mona"
+    caller = _CallerMasks(masks, stream.cut) if masks is not None and not use_mona else None
+    rec = _Recorder(config, stream, on_frame, progress)
     repeats = RepeatDetector(config.repeat_max_diff)
-    rows: list[int] = []
-    repeat_of: list[int] = []
-    first_intr: Intrinsics | None = None
-    size = None
-
+    timings: dict[str, float] = {}
     masker = None
-    use_mona = False
-    caller = None
-    if isinstance(masks, str):
-        if masks != "mona":
-            raise ConfigError(f"masks must be 'mona', None, an iterable or a callable, not '{masks}'")
-        use_mona = True
-    elif masks is not None:
-        caller = _CallerMasks(masks, picture if cropped else None)
-
-    pending: deque = deque()   # frames waiting for their MONA mask
-    # Without intrinsics the VO may run twice (_second_pass); the masks it saw are kept for that,
-    # packed to a bit per pixel.
-    may_rerun = (intrinsics is None and config.vo.refine == "global"
-                 and config.vo.global_camera != "none" and rereadable)
-    vo_masks: list = []
-
-    def feed(frame, repeat, mask, mona=None, vo_mask=None):
-        # vo_mask: what the VO sees; MONA's masks reach it only when reliable
-        # (MaskFrame.reliable: not too large, not flickering), else the VO relies on its own
-        # residual test for that frame. Caller masks are used as given.
-        nonlocal vo, first_intr
-        if mona is None:
-            vo_mask = mask
-        full_mask = picture.uncrop(mask) if cropped else mask
-        if on_frame is not None:
-            on_frame(FrameOutput(frame.index, frame.name, frame.timestamp,
-                                 getattr(frame, "full", frame.image), full_mask, mona,
-                                 (picture.x0, picture.y0) if cropped else (0, 0)))
-        if repeat:
-            rows.append(rows[-1])
-            repeat_of.append(repeat_of[-1] if repeat_of[-1] >= 0 else len(names) - 1)
-        else:
-            intr = _intrinsics_for(intrinsics, frame, *size)
-            if vo is None:
-                first_intr = intr or camera_without_calib(calibration, config, *size)
-                vo = VisualOdometry(config.vo, size[0], size[1], first_intr,
-                                    tracker=config.build_tracker(), camera_known=intr is not None)
-            vo.step(frame.image, timestamp=frame.timestamp, mask=vo_mask, intrinsics=intr)
-            if may_rerun:
-                vo_masks.append(None if vo_mask is None else np.packbits(vo_mask))
-            rows.append(rows[-1] + 1 if rows else 0)
-            repeat_of.append(-1)
-        stamps.append(frame.timestamp)
-        names.append(frame.name)
-        coverage.append(float(full_mask.mean()) if full_mask is not None else 0.0)
-        if progress is not None:
-            progress(len(names))
+    pending: deque = deque()   # (frame, repeat) waiting for its MONA mask
 
     def drain(mask_frames):
         for mf in mask_frames:
@@ -374,10 +429,10 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             for stage, sec in (getattr(mf, "seconds", None) or {}).items():
                 key = f"masks.{stage}"
                 timings[key] = timings.get(key, 0.0) + sec
-            feed(frame, repeat, mf.mask, mf, getattr(mf, "vo_mask", mf.mask))
+            rec.add(frame, repeat, mf.mask, mf, getattr(mf, "vo_mask", mf.mask))
 
     full_size = None
-    for frame in frames:
+    for frame in stream.frames:
         h, w = getattr(frame, "full", frame.image).shape[:2]
         if full_size is None:
             full_size = (w, h)
@@ -385,43 +440,28 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             raise InputError(f"frame {frame.name} is {w} x {h}, earlier frames are "
                              f"{full_size[0]} x {full_size[1]}")
         h, w = frame.image.shape[:2]
-        size = (w, h)
+        rec.size = (w, h)
         repeat = repeats.is_repeat(frame.image)
-        if use_mona:
-            if masker is None:
-                from mona_vo.masks import MonaMasker
+        if not use_mona:
+            rec.add(frame, repeat, caller.get(frame) if caller is not None else None)
+            continue
+        if masker is None:
+            from mona_vo.masks import MonaMasker
 
-                # MONA's camera model uses the intrinsics when known, else the VO's camera.
-                masker = MonaMasker(config.masks, _intrinsics_for(intrinsics, frame, w, h)
-                                    or camera_without_calib(calibration, config, w, h),
-                                    **config.masker_backends())
-            pending.append((frame, repeat))
-            drain(masker.push_repeat(frame.index) if repeat else masker.push(frame.index, frame.image))
-        else:
-            feed(frame, repeat, caller.get(frame) if caller is not None else None)
+            # MONA's camera model uses the intrinsics when known, else the VO's camera.
+            masker = MonaMasker(config.masks, _intrinsics_for(stream.intrinsics, frame, w, h)
+                                or camera_without_calib(stream.calibration, config, w, h),
+                                **config.masker_backends())
+        pending.append((frame, repeat))
+        drain(masker.push_repeat(frame.index) if repeat else masker.push(frame.index, frame.image))
     if masker is not None:
         drain(masker.flush())
-    if vo is None or len(names) < 2:
-        where = getattr(source, "path", None)
-        raise InputError(f"{str(where) + ': ' if where is not None else ''}a trajectory needs at "
-                         f"least 2 frames; the input has {len(names)}")
-    if rows[-1] < 1:
-        where = getattr(source, "path", None)
-        raise InputError(f"{str(where) + ': ' if where is not None else ''}a trajectory needs at "
-                         f"least 2 distinct frames; all {len(names)} frames show the first one "
-                         f"again (repeat_max_diff {config.repeat_max_diff:g})")
-    result = vo.finish()
-    for stage, sec in result.timings.items():
-        timings[f"vo.{stage}"] = sec
-    repeat_of = np.array(repeat_of, np.int64)
-    if may_rerun:
-        distinct = (f for f, r in zip(source, repeat_of) if r < 0)
-        result = _second_pass(distinct, result, vo_masks, size, first_intr, config, timings)
-    if (repeat_of >= 0).any():
-        result = _with_repeats(result, np.array(rows), repeat_of, stamps)
+    result = rec.finish(timings)
     timings["total"] = time.perf_counter() - t_start
-    if calibration is not None:
-        timings["calibration"] = calibration.seconds
-    return RunResult(result, names, full_size[0], full_size[1],
-                     picture.to_frame(first_intr) if cropped else first_intr, timings,
-                     np.array(coverage), calibration, picture, repeat_of)
+    if stream.calibration is not None:
+        timings["calibration"] = stream.calibration.seconds
+    cut = stream.cut
+    return RunResult(result, rec.names, full_size[0], full_size[1],
+                     cut.to_frame(rec.first_intr) if cut is not None else rec.first_intr, timings,
+                     np.array(rec.coverage), stream.calibration, stream.picture,
+                     np.array(rec.repeat_of, np.int64))
