@@ -26,18 +26,10 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from eval.mask_metrics import boundary_f, evaluate_mask_sequence, region_similarity
-from mona_vo.masks import STAGES, MaskConfig, MonaMasker
+from mona_vo.masks import STAGES, MaskConfig, compute_masks
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 DYNAMIC_PRESETS = ("one-large", "several", "fast-rotation")
-
-
-def _masks(frames: Iterable[tuple[int, np.ndarray]], config: MaskConfig, intrinsics=None):
-    """MaskFrames of (index, image) pairs, streamed."""
-    masker = MonaMasker(config, intrinsics)
-    for index, image in frames:
-        yield from masker.push(index, image)
-    yield from masker.flush()
 
 
 def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
@@ -70,7 +62,7 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                 found = zip(range(len(images)), gt_box_masks(images, truth, config))
             else:
                 found = ((out.index, out.mask) for out in
-                         _masks(frames(), config, scene.intrinsics if use_intrinsics else None))
+                         compute_masks(frames(), config, scene.intrinsics if use_intrinsics else None))
             J, F, fp, area, gt_area = [], [], [], [], []
             for index, mask in found:
                 gt = gts.pop(index)
@@ -169,7 +161,7 @@ def davis_rows(root: str | Path | None = None,
             else:
                 frames = ((f.index, f.image) for f in ds.frames(max_frames=max_frames))
                 preds = [out.mask for out in
-                         _masks(frames, dataclasses.replace(config, prompt=mode), intrinsics)]
+                         compute_masks(frames, dataclasses.replace(config, prompt=mode), intrinsics)]
                 gts = [m for m, _ in zip(ds.masks(), preds)]
             sec = (time.perf_counter() - t0) / max(len(preds), 1)
             metrics = evaluate_mask_sequence(preds, gts)
@@ -202,7 +194,7 @@ def speed_rows(n_frames: int = 25, config: MaskConfig | None = None,
     per_stage = {s: [] for s in STAGES}
     totals = []
     t0 = time.perf_counter()
-    for out in _masks(enumerate(images), config):
+    for out in compute_masks(enumerate(images), config):
         for s in STAGES:
             per_stage[s].append(out.seconds.get(s, 0.0))
         totals.append(sum(out.seconds.values()))
