@@ -11,7 +11,6 @@ import pytest
 from data_tools.frames import open_frames
 from data_tools.masks_io import read_mask_png
 from data_tools.repeats import shown_images, shown_order, write_stuttered_copy
-from eval.metrics import Trajectory, evaluate_trajectory
 from mona_vo.config import apply_overrides
 from mona_vo.errors import InputError
 from mona_vo.masks import compute_masks
@@ -94,14 +93,21 @@ def test_masks_of_repeats_are_their_frames_and_the_rest_as_without_repeats(pulld
     assert any(m.any() for m in plain)
 
 
-def test_a_clip_with_repeats_gets_the_trajectory_of_its_distinct_frames(pulldown):
+def test_a_clip_with_repeats_gets_the_trajectory_and_masks_of_its_distinct_frames(pulldown):
     # Central claim. Taken as repeats, the shown clip's distinct frames get exactly the poses
-    # of the clip without repeats (MONA masks, true intrinsics). Fed as frames, the repeats
-    # cost the trajectory: measured ATE % of path over the shown frames 0.152 (repeats taken)
-    # against 0.177 (repeat_max_diff=0); on the generated `mixed` parts the README gives.
+    # of the clip without repeats (MONA masks, true intrinsics), and its masks hold. Fed as
+    # frames (repeat_max_diff=0), a repeat is a frame without motion between frames with
+    # motion, and the masks lose the car: measured mean J over the shown frames 0.840 taken,
+    # 0.087 fed. (The trajectory fed the repeats is not always worse: on the generated `mixed`
+    # parts it is better on about half the sequences, README Results.)
+    from eval.mask_metrics import region_similarity
+
     scene, frames, shown, order = pulldown
+    gts = [r.mask for r in scene]
     plain = estimate_trajectory(frames, intrinsics=scene.intrinsics, masks="mona")
-    taken = estimate_trajectory(shown, intrinsics=scene.intrinsics, masks="mona")
+    j = {"taken": [], "fed": []}
+    taken = estimate_trajectory(shown, intrinsics=scene.intrinsics, masks="mona", on_frame=lambda o:
+                                j["taken"].append(region_similarity(o.mask, gts[order[o.index]])))
     rep = taken.repeat_of
     assert list(np.flatnonzero(rep >= 0)) == [k for k in range(1, len(order)) if order[k] == order[k - 1]]
     np.testing.assert_array_equal(taken.vo.poses[rep < 0], plain.vo.poses)
@@ -111,12 +117,12 @@ def test_a_clip_with_repeats_gets_the_trajectory_of_its_distinct_frames(pulldown
     np.testing.assert_array_equal(taken.vo.timestamps, np.arange(len(shown), dtype=float))
 
     fed = estimate_trajectory(shown, intrinsics=scene.intrinsics, masks="mona",
-                              config=apply_overrides(PipelineConfig(), {"repeat_max_diff": 0}))
+                              config=apply_overrides(PipelineConfig(), {"repeat_max_diff": 0}),
+                              on_frame=lambda o: j["fed"].append(
+                                  region_similarity(o.mask, gts[order[o.index]])))
     assert fed.repeat_of is not None and not (fed.repeat_of >= 0).any()
-    gt = Trajectory(np.arange(len(shown), dtype=float), scene.poses()[order])
-    ate = {name: evaluate_trajectory(gt, Trajectory(gt.timestamps, r.vo.poses)).ate_percent_of_path
-           for name, r in (("taken", taken), ("fed", fed))}
-    assert ate["taken"] < ate["fed"], ate
+    jt, jf = float(np.mean(j["taken"])), float(np.mean(j["fed"]))
+    assert jt > 0.7 and jf < 0.5 * jt, (jt, jf)
 
 
 def test_a_clip_of_one_picture_is_refused_with_its_name():
