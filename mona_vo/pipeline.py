@@ -57,9 +57,10 @@ class PipelineConfig:
                                             # frames and run on the picture inside them
                                             # (mona_vo.picture_area); masks and intrinsics stay
                                             # in full-frame pixels
-    repeat_max_diff: float = setting(4.0, ge=0, le=255)  # a frame no 16 x 16 block of which
+    repeat_max_diff: float = setting(2.5, ge=0, le=255)  # a frame no 16 x 16 block of which
                                             # differs from the last distinct frame by more than
-                                            # this many grey levels (mean) is a repeat
+                                            # this many grey levels (mean, both smoothed by
+                                            # 1 px) is a repeat
                                             # (pulldown, a stalled stream): it takes that
                                             # frame's pose and mask unprocessed
                                             # (mona_vo.repeats); 0 = off
