@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from data_tools.bars import KINDS as BAR_KINDS, add_bars
+from data_tools.overlays import KINDS as OVERLAY_KINDS, add_overlay
 from data_tools.repeats import KINDS as REPEAT_KINDS, shown_images, shown_order
 from data_tools.synthetic import SceneConfig, SyntheticScene
 from eval.mask_metrics import region_similarity
@@ -107,14 +108,15 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
 def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
               config: PipelineConfig | None = None, on_row=None, repeats: int = 1,
               calib: str = "given", bars: str | None = None,
-              frame_repeats: str | None = None) -> list[dict]:
+              frame_repeats: str | None = None, overlay: str | None = None) -> list[dict]:
     """One row per preset x seed x variant x repeat. ``repeats`` > 1 runs each sequence again to
     measure the run-to-run spread of one input (0 when the pipeline is deterministic);
     ``calib`` as in :func:`run_variant`; ``bars``: paint bars of this kind over every frame
     (:func:`data_tools.bars.add_bars`; the true masks keep the movers under the bars, which no
     mask can find); ``frame_repeats``: show the frames with repeats of this kind
     (:mod:`data_tools.repeats`; each shown frame's true pose and mask are those of the frame
-    shown, but for ``stutter``, whose held frame keeps its own time's)."""
+    shown, but for ``stutter``, whose held frame keeps its own time's); ``overlay``: burn in
+    an overlay of this kind (:func:`data_tools.overlays.add_overlay`)."""
     config = config or PipelineConfig()
     rows = []
     for preset in presets:
@@ -122,6 +124,9 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
             scene, frames, masks = render_sequence(preset, seed, n_frames, width, height)
             if bars:
                 frames = [_Frame(f.index, f.timestamp, f.name, add_bars(f.image, bars)) for f in frames]
+            if overlay:
+                frames = [_Frame(f.index, f.timestamp, f.name, add_overlay(f.image, overlay))
+                          for f in frames]
             gt_poses = None
             if frame_repeats:
                 order = shown_order(len(frames), frame_repeats)
@@ -260,6 +265,9 @@ def main(argv=None) -> int:
     ap.add_argument("--bars", choices=BAR_KINDS,
                     help="paint bars of this kind over every frame (data_tools.bars), as "
                          "online videos carry them")
+    ap.add_argument("--overlay", choices=OVERLAY_KINDS,
+                    help="burn in an overlay of this kind (data_tools.overlays), as online "
+                         "videos carry them")
     ap.add_argument("--frame-repeats", choices=REPEAT_KINDS,
                     help="show the frames with repeats of this kind (data_tools.repeats), as "
                          "online videos carry them")
@@ -273,7 +281,8 @@ def main(argv=None) -> int:
     rows = benchmark(args.presets.split(","), parse_seeds(args.seeds), args.variants.split(","),
                      n_frames=args.frames, width=w, height=h, config=cfg,
                      on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats),
-                     calib=args.calib, bars=args.bars, frame_repeats=args.frame_repeats)
+                     calib=args.calib, bars=args.bars, frame_repeats=args.frame_repeats,
+                     overlay=args.overlay)
     print()
     summary = summarize(rows)
     print(format_summary(summary))

@@ -27,6 +27,7 @@ from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
 from mona_vo.tracking import TRACKERS
 from mona_vo.errors import ConfigError, InputError
 from mona_vo.picture_area import PictureArea, crop_frames, crop_to_picture
+from mona_vo.overlays import hide_overlay, overlay_ahead
 from mona_vo.repeats import RepeatDetector
 from mona_vo.vo import VOConfig, VOResult, VisualOdometry
 
@@ -57,6 +58,9 @@ class PipelineConfig:
                                             # frames and run on the picture inside them
                                             # (mona_vo.picture_area); masks and intrinsics stay
                                             # in full-frame pixels
+    hide_overlays: bool = setting(True)     # find burned-in logos and captions that stand
+                                            # still in the first frames and paint them over
+                                            # in every frame (mona_vo.overlays)
     repeat_max_diff: float = setting(2.5, ge=0, le=255)  # a frame no 16 x 16 block of which
                                             # differs from the last distinct frame by more than
                                             # this many grey levels (mean, both smoothed by
@@ -120,6 +124,8 @@ class RunResult:
     mask_coverage: np.ndarray       # (N,) fraction of each frame's pixels inside its mask
     calibration: Any = None         # mona_vo.calibration.FocalEstimate without given intrinsics
     picture: PictureArea | None = None  # the picture inside bars the run used (crop_bars)
+    overlay: np.ndarray | None = None   # (H, W) bool burned-in overlay painted over
+                                    # (hide_overlays), None when none was found
     repeat_of: np.ndarray | None = None  # (N,) int: the frame each frame repeats (its pose and
                                     # mask are that frame's), -1 for a distinct frame
 
@@ -273,8 +279,8 @@ def _with_repeats(vo: VOResult, rows: np.ndarray, repeat_of: np.ndarray,
 
 
 @dataclass
-class _Stream:
-    """The frames as a run sees them (:func:`_open_stream`)."""
+class Stream:
+    """The frames as a run sees them (:func:`open_stream`)."""
 
     frames: Iterable            # what the run reads: each frame's picture, the head replayed
     source: Iterable            # the same frames to read again (a second pass)
@@ -282,6 +288,7 @@ class _Stream:
     picture: PictureArea | None  # the picture found (crop_bars; the whole frame without bars)
     intrinsics: Any             # the caller's intrinsics, in the picture's pixels
     calibration: Any            # the focal-length estimate without intrinsics, else None
+    overlay: np.ndarray | None = None  # the picture's pixels painted over (hide_overlays)
 
     @property
     def cut(self) -> PictureArea | None:
@@ -292,9 +299,10 @@ class _Stream:
         return mask if self.cut is None or mask is None else self.cut.uncrop(mask)
 
 
-def _open_stream(frames: Iterable, intrinsics, config: PipelineConfig) -> _Stream:
-    """Find the picture inside bars and, without intrinsics, the focal length from the first
-    frames (both read ahead, then replayed): everything after sees the picture alone."""
+def open_stream(frames: Iterable, intrinsics, config: PipelineConfig) -> Stream:
+    """Find the picture inside bars, burned-in overlays in it and, without intrinsics, the focal
+    length, each from the first frames (read ahead, then replayed): everything after sees the
+    picture alone, overlays painted over."""
     source = frames
     rereadable = iter(source) is not source
     picture = None
@@ -304,19 +312,24 @@ def _open_stream(frames: Iterable, intrinsics, config: PipelineConfig) -> _Strea
     if picture is not None and not picture.is_whole:
         source = crop_frames(source, picture)
         intrinsics = _intrinsics_in_picture(intrinsics, picture)
+    overlay = None
+    if config.hide_overlays:
+        frames, overlay = overlay_ahead(frames)
+        if overlay is not None:
+            frames, source = hide_overlay(frames, overlay), hide_overlay(source, overlay)
     calibration = None
     if intrinsics is None and config.calibration.mode == "estimate":
         # Without intrinsics the focal length comes from the first frames (read ahead, then
         # replayed); the VO uses it, the report says how it was found.
         frames, calibration = estimate_focal_ahead(frames, config)
-    return _Stream(frames, source, rereadable, picture, intrinsics, calibration)
+    return Stream(frames, source, rereadable, picture, intrinsics, calibration, overlay)
 
 
 class _Recorder:
     """Takes each frame once its mask is known, in order: hands it to ``on_frame`` and to the VO
     (a repeat, :mod:`mona_vo.repeats`, only to ``on_frame``) and keeps what the result needs."""
 
-    def __init__(self, config: PipelineConfig, stream: _Stream, on_frame, progress):
+    def __init__(self, config: PipelineConfig, stream: Stream, on_frame, progress):
         self.config, self.stream, self.on_frame, self.progress = config, stream, on_frame, progress
         self.vo: VisualOdometry | None = None
         self.first_intr: Intrinsics | None = None
@@ -413,7 +426,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     t_start = time.perf_counter()
     if isinstance(masks, str) and masks != "mona":
         raise ConfigError(f"masks must be 'mona', None, an iterable or a callable, not '{masks}'")
-    stream = _open_stream(frames, intrinsics, config)
+    stream = open_stream(frames, intrinsics, config)
     use_mona = masks == "mona"
     caller = _CallerMasks(masks, stream.cut) if masks is not None and not use_mona else None
     rec = _Recorder(config, stream, on_frame, progress)
@@ -465,4 +478,5 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     return RunResult(result, rec.names, full_size[0], full_size[1],
                      cut.to_frame(rec.first_intr) if cut is not None else rec.first_intr, timings,
                      np.array(rec.coverage), stream.calibration, stream.picture,
-                     np.array(rec.repeat_of, np.int64))
+                     repeat_of=np.array(rec.repeat_of, np.int64),
+                     overlay=stream.full_mask(stream.overlay))

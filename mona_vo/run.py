@@ -15,7 +15,7 @@ from mona_vo import __version__
 from mona_vo.config import to_dict
 from mona_vo.conventions import Intrinsics
 from mona_vo.errors import InputError
-from mona_vo.pipeline import FrameOutput, PipelineConfig, camera_ahead, estimate_trajectory
+from mona_vo.pipeline import FrameOutput, PipelineConfig, estimate_trajectory
 
 
 def _progress_bar(total: int | None, desc: str, enabled: bool):
@@ -132,6 +132,8 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         # The picture inside flat letterbox / pillarbox bars, where the run looked (crop_bars);
         # pixel values under global_refinement are the picture's, all others the frame's.
         "picture_area": result.picture.as_dict() if result.picture is not None else None,
+        # Burned-in logos and captions found standing still and painted over (hide_overlays).
+        "overlay": _overlay_summary(getattr(result, "overlay", None)),
         "masks": masks or "none",
         "mean_mask_coverage": float(result.mask_coverage.mean()) if result.n_frames else 0.0,
         "calibration": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
@@ -163,6 +165,18 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "config": to_dict(config),
         "machine": {"cpu_count": _cpu_count(), "platform": platform.platform()},
     }
+
+
+def _overlay_summary(overlay) -> dict | None:
+    """The burned-in overlay painted over (mona_vo.overlays): its share of the frame and the
+    box [x0, y0, x1, y1] (frame pixels, exclusive ends) of each of its parts; None: none found."""
+    if overlay is None:
+        return None
+    import cv2
+
+    n, _, stats, _ = cv2.connectedComponentsWithStats(overlay.astype(np.uint8), connectivity=8)
+    boxes = [[int(x), int(y), int(x + w), int(y + h)] for x, y, w, h, _ in stats[1:]]
+    return {"area": round(float(overlay.mean()), 5), "boxes": boxes}
 
 
 def _repeated_frames(result) -> dict[str, str]:
@@ -204,7 +218,8 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
     from data_tools.frames import open_frames
     from data_tools.run_outputs import RunOutputs
     from mona_vo.masks import compute_masks
-    from mona_vo.picture_area import PictureArea, crop_to_picture
+    from mona_vo.picture_area import PictureArea
+    from mona_vo.pipeline import camera_without_calib, open_stream
 
     config = config or PipelineConfig()
     source = open_frames(input_path, stride=stride, max_frames=max_frames)
@@ -221,13 +236,14 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
         bar, update = _progress_bar(len(source), "mona-vo masks", progress)
         t0 = time.perf_counter()
         try:
-            frames, area = crop_to_picture(source) if config.crop_bars else (source, None)
-            area = area or PictureArea.whole(source.width, source.height)
-            frames, estimate, camera = camera_ahead(frames, config, *area.size)
-            for n, mf in enumerate(compute_masks(remember(frames), config.masks, camera,
+            stream = open_stream(source, None, config)
+            area = stream.picture or PictureArea.whole(source.width, source.height)
+            estimate = stream.calibration
+            camera = camera_without_calib(estimate, config, *area.size)
+            for n, mf in enumerate(compute_masks(remember(stream.frames), config.masks, camera,
                                                  repeat_max_diff=config.repeat_max_diff,
                                                  **config.masker_backends()), start=1):
-                mask = area.uncrop(mf.mask)
+                mask = stream.full_mask(mf.mask)
                 outputs.add_mask(names[mf.index], mask)
                 if mf.repeat_of >= 0:
                     repeated[names[mf.index]] = names[mf.repeat_of]
@@ -242,6 +258,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
                   "frames_per_second": round(len(coverage) / seconds, 2) if seconds > 0 else None,
                   "mean_mask_coverage": float(np.mean(coverage)) if coverage else 0.0,
                   "picture_area": area.as_dict(),
+                  "overlay": _overlay_summary(stream.full_mask(stream.overlay)),
                   "repeated_frames": repeated,
                   "calibration": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                                   "source": _camera_source(getattr(estimate, "used", False),

@@ -1,0 +1,94 @@
+"""Burned-in overlays painted over frames, as online videos carry them: to measure what they cost
+and what painting them out (``hide_overlays``, :mod:`mona_vo.overlays`) gives back.
+
+Kinds: ``logo`` (a channel's badge: an opaque box with white lettering, top left), ``watermark``
+(a platform's handle at 60 % opacity, bottom right), ``both``. Sizes follow the frame's width.
+
+``python -m data_tools.overlays SRC DST [--kind logo]`` writes DST, a copy of the image folder
+SRC with the overlay on every image (same names and format); the text files of a TUM-layout
+folder (``rgb.txt``, ``groundtruth.txt``, ``calib.txt``) are copied with it.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from data_tools.atomic import write_bytes_atomic
+from data_tools.frames import IMAGE_EXTENSIONS
+from mona_vo.errors import InputError
+
+KINDS = ("logo", "watermark", "both")
+
+
+def add_overlay(image: np.ndarray, kind: str) -> np.ndarray:
+    """A copy of (H, W, 3) uint8 ``image`` with the overlay ``kind`` burned in."""
+    if kind not in KINDS:
+        raise ValueError(f"overlay kind must be one of {', '.join(KINDS)}, not '{kind}'")
+    out = np.array(image, np.uint8, copy=True)
+    h, w = out.shape[:2]
+    s = w / 640.0
+    if kind in ("logo", "both"):
+        x0, y0 = int(12 * s), int(12 * s)
+        x1, y1 = x0 + int(120 * s), y0 + int(34 * s)
+        cv2.rectangle(out, (x0, y0), (x1, y1), (150, 20, 20), -1)
+        cv2.putText(out, "NEWS 24", (x0 + int(8 * s), y1 - int(9 * s)), cv2.FONT_HERSHEY_DUPLEX,
+                    0.7 * s, (255, 255, 255), max(1, int(2 * s)), cv2.LINE_AA)
+    if kind in ("watermark", "both"):
+        layer = out.copy()
+        cv2.putText(layer, "@somebody", (w - int(170 * s), h - int(16 * s)),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.8 * s, (255, 255, 255), max(1, int(2 * s)),
+                    cv2.LINE_AA)
+        out = cv2.addWeighted(layer, 0.6, out, 0.4, 0)
+    return out
+
+
+def write_overlaid_copy(src, dst, kind: str = "logo") -> int:
+    """Copy the image folder (or TUM-layout folder) ``src`` to ``dst`` with the overlay on every
+    image; returns the number of images written."""
+    src, dst = Path(src), Path(dst)
+    if not src.is_dir():
+        raise InputError(f"{src}: not a folder")
+    images = src / "rgb" if (src / "rgb").is_dir() else src
+    files = sorted(p for p in images.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    if not files:
+        raise InputError(f"{images}: no images")
+    out = dst / images.relative_to(src)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("rgb.txt", "groundtruth.txt", "calib.txt"):
+        if images != src and (src / name).is_file():
+            shutil.copy(src / name, dst / name)
+    for p in files:
+        im = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if im is None:
+            raise InputError(f"{p}: cannot be read as an image")
+        rgb = add_overlay(cv2.cvtColor(im, cv2.COLOR_BGR2RGB), kind)
+        ok, buf = cv2.imencode(p.suffix, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        if not ok:
+            raise InputError(f"{p}: cannot be written as {p.suffix}")
+        write_bytes_atomic(out / p.name, buf.tobytes())
+    return len(files)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m data_tools.overlays",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("src")
+    ap.add_argument("dst")
+    ap.add_argument("--kind", choices=KINDS, default="logo")
+    args = ap.parse_args(argv)
+    try:
+        n = write_overlaid_copy(args.src, args.dst, args.kind)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {n} images with a {args.kind} to {args.dst}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,123 @@
+"""Burned-in overlays: logos, watermarks and captions that stand still in the picture while the
+scene moves behind them. Found once in the first frames, painted over in every frame.
+
+An overlay is no part of the scene. Left in, it is a patch of strong edges that keeps its
+place in the image however the camera moves: to MONA a mover (its points do not follow the
+camera's motion, so it is masked and its box crowds out the real movers' boxes), to the VO
+corners at infinity turning with the camera. Online videos carry them more often than not
+(a channel's logo, a platform's watermark, a caption).
+
+The rule, on the first frames' grey images reduced to ``work_size`` (their longer side): a
+pixel is still when the mean image has a strong edge there (gradient at least ``min_edge``
+grey levels per pixel) and its level moves by at most ``max_std`` (standard deviation over
+the frames). A moving scene's edges blur out in the mean image and change level where they
+pass; an overlay's stay sharp and keep their level. When the level changes (by more than twice
+``max_std``) over less than ``min_moving_area`` of the picture, the camera stands (or nothing
+moves): an overlay cannot be told from the scene, and none is found. Still pixels closed into blobs (letters into
+words) and blobs of at least ``min_pixels`` still pixels grown by ``grow_px`` are the overlay,
+unless they cover more than ``max_area`` of the picture (a still scene, not an overlay). Each
+frame's picture is then painted over there (OpenCV's Telea inpainting from the border): no
+corner, no flow discontinuity, nothing still is left for masks or VO to see. Masks are never
+set inside the overlay: it is in front of any mover.
+
+Not found: overlays that change (a clock that ticks, captions that come and go within the
+first frames), ones that appear after the first frames, semi-transparent ones whose edges are
+weaker than ``min_edge``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Iterator
+
+import cv2
+import numpy as np
+
+from mona_vo.conventions import working_size
+
+__all__ = ["OverlayConfig", "find_overlay", "overlay_ahead", "HiddenFrame", "hide_overlay"]
+
+
+@dataclass(frozen=True)
+class OverlayConfig:
+    work_size: int = 480          # longer side the test runs at, px
+    min_edge: float = 24.0        # grey levels per pixel (Sobel of the mean image, per pixel)
+    max_std: float = 4.0          # grey levels over the frames
+    min_moving_area: float = 0.05  # of the picture whose level must change by 2 max_std;
+                                   # below: a still camera (or nothing moves)
+    max_area: float = 0.1         # of the picture an overlay may cover; above: not an overlay
+    min_pixels: int = 12          # still pixels a blob needs, at work_size
+    grow_px: int = 3              # at work_size
+    frames: int = 30              # read ahead
+    step: int = 3                 # every third of them
+
+
+def _edges(grey: np.ndarray) -> np.ndarray:
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3) / 4.0
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3) / 4.0
+    return cv2.magnitude(gx, gy)
+
+
+def find_overlay(images: Iterable[np.ndarray], config: OverlayConfig = OverlayConfig()
+                 ) -> np.ndarray | None:
+    """The (H, W) bool overlay of (H, W, 3) uint8 RGB ``images`` (a clip's first frames), None
+    when there is none or it cannot be told (module docstring)."""
+    images = [np.asarray(im, np.uint8) for im in images]
+    if len(images) < 3:
+        return None
+    h, w = images[0].shape[:2]
+    size = working_size(w, h, config.work_size)
+    stack = np.stack([cv2.resize(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY), size,
+                                 interpolation=cv2.INTER_AREA) for im in images]).astype(np.float32)
+    mean = stack.mean(axis=0)
+    std = stack.std(axis=0)
+    still = (_edges(mean) >= config.min_edge) & (std <= config.max_std)
+    if not still.any() or np.mean(std > 2 * config.max_std) < config.min_moving_area:
+        return None
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    blobs = cv2.morphologyEx(still.astype(np.uint8), cv2.MORPH_CLOSE, kernel)
+    n, labels = cv2.connectedComponents(blobs, connectivity=8)
+    counts = np.bincount(labels[still], minlength=n)
+    keep = counts >= config.min_pixels
+    keep[0] = False
+    if not keep.any():
+        return None
+    region = keep[labels].astype(np.uint8)
+    g = 2 * config.grow_px + 1
+    region = cv2.dilate(region, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (g, g)))
+    if region.mean() > config.max_area:
+        return None
+    return cv2.resize(region, (w, h), interpolation=cv2.INTER_LINEAR) > 0
+
+
+def overlay_ahead(frames: Iterable, config: OverlayConfig = OverlayConfig()):
+    """Read the first ``config.frames`` of ``frames`` and find the overlay in them. Returns (the
+    whole stream again, the overlay or None)."""
+    from data_tools.frames import read_ahead
+
+    head, stream = read_ahead(frames, config.frames)
+    return stream, find_overlay([f.image for f in head[::config.step]], config)
+
+
+@dataclass(frozen=True)
+class HiddenFrame:
+    """A frame whose picture (``image``) has its overlay painted over; ``full`` as read."""
+
+    index: int
+    timestamp: float
+    name: str
+    image: np.ndarray
+    full: np.ndarray
+
+
+class hide_overlay:
+    """``frames`` with ``overlay`` (picture-sized bool) painted over in each picture. Re-iterable
+    when ``frames`` is."""
+
+    def __init__(self, frames: Iterable, overlay: np.ndarray):
+        self.frames = frames
+        self.overlay = overlay.astype(np.uint8)
+
+    def __iter__(self) -> Iterator[HiddenFrame]:
+        for f in self.frames:
+            painted = cv2.inpaint(f.image, self.overlay, 3, cv2.INPAINT_TELEA)
+            yield HiddenFrame(f.index, f.timestamp, f.name, painted, getattr(f, "full", f.image))
