@@ -351,6 +351,10 @@ class _Recorder:
         # residual test for that frame. Caller masks are used as given.
         if mona is None:
             vo_mask = mask
+        if self.stream.overlay is not None:
+            # Painted over, the overlay changes with the scene around it without moving as it
+            # does: no track is kept or started there.
+            vo_mask = self.stream.overlay if vo_mask is None else vo_mask | self.stream.overlay
         full_mask = self.stream.full_mask(mask)
         pic = self.stream.cut
         if self.on_frame is not None:
@@ -465,7 +469,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             # MONA's camera model uses the intrinsics when known, else the VO's camera.
             masker = MonaMasker(config.masks, _intrinsics_for(stream.intrinsics, frame, w, h)
                                 or camera_without_calib(stream.calibration, config, w, h),
-                                **config.masker_backends())
+                                ignore=stream.overlay, **config.masker_backends())
         pending.append((frame, repeat))
         drain(masker.push_repeat(frame.index) if repeat else masker.push(frame.index, frame.image))
     if masker is not None:

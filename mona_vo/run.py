@@ -242,6 +242,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
             camera = camera_without_calib(estimate, config, *area.size)
             for n, mf in enumerate(compute_masks(remember(stream.frames), config.masks, camera,
                                                  repeat_max_diff=config.repeat_max_diff,
+                                                 ignore=stream.overlay,
                                                  **config.masker_backends()), start=1):
                 mask = stream.full_mask(mf.mask)
                 outputs.add_mask(names[mf.index], mask)
