@@ -13,15 +13,12 @@ gets the bars.
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from data_tools.atomic import write_bytes_atomic
-from data_tools.frames import IMAGE_EXTENSIONS
+from data_tools.folder_copy import image_folder_copy, rewrite_image
 from mona_vo.errors import InputError
 
 KINDS = ("letterbox", "pillarbox", "window", "letterbox-jpeg")
@@ -55,26 +52,9 @@ def add_bars(image: np.ndarray, kind: str, frac: float = 0.12) -> np.ndarray:
 def write_barred_copy(src, dst, kind: str = "letterbox", frac: float = 0.12) -> int:
     """Copy the image folder (or TUM-layout folder) ``src`` to ``dst`` with bars on every image;
     returns the number of images written."""
-    src, dst = Path(src), Path(dst)
-    if not src.is_dir():
-        raise InputError(f"{src}: not a folder")
-    images = src / "rgb" if (src / "rgb").is_dir() else src
-    files = sorted(p for p in images.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
-    if not files:
-        raise InputError(f"{images}: no images")
-    out = dst / images.relative_to(src)
-    out.mkdir(parents=True, exist_ok=True)
-    for name in ("rgb.txt", "groundtruth.txt", "calib.txt"):
-        if images != src and (src / name).is_file():
-            shutil.copy(src / name, dst / name)
+    files, out = image_folder_copy(src, dst)
     for p in files:
-        im = cv2.imread(str(p), cv2.IMREAD_COLOR)     # BGR in, BGR out: the bars are grey
-        if im is None:
-            raise InputError(f"{p}: cannot be read as an image")
-        ok, buf = cv2.imencode(p.suffix, add_bars(im, kind, frac))
-        if not ok:
-            raise InputError(f"{p}: cannot be written as {p.suffix}")
-        write_bytes_atomic(out / p.name, buf.tobytes())
+        rewrite_image(p, out / p.name, lambda im: add_bars(im, kind, frac))
     return len(files)
 
 

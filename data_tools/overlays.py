@@ -11,15 +11,12 @@ folder (``rgb.txt``, ``groundtruth.txt``, ``calib.txt``) are copied with it.
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from data_tools.atomic import write_bytes_atomic
-from data_tools.frames import IMAGE_EXTENSIONS
+from data_tools.folder_copy import image_folder_copy, rewrite_image
 from mona_vo.errors import InputError
 
 KINDS = ("logo", "watermark", "both")
@@ -50,27 +47,9 @@ def add_overlay(image: np.ndarray, kind: str) -> np.ndarray:
 def write_overlaid_copy(src, dst, kind: str = "logo") -> int:
     """Copy the image folder (or TUM-layout folder) ``src`` to ``dst`` with the overlay on every
     image; returns the number of images written."""
-    src, dst = Path(src), Path(dst)
-    if not src.is_dir():
-        raise InputError(f"{src}: not a folder")
-    images = src / "rgb" if (src / "rgb").is_dir() else src
-    files = sorted(p for p in images.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
-    if not files:
-        raise InputError(f"{images}: no images")
-    out = dst / images.relative_to(src)
-    out.mkdir(parents=True, exist_ok=True)
-    for name in ("rgb.txt", "groundtruth.txt", "calib.txt"):
-        if images != src and (src / name).is_file():
-            shutil.copy(src / name, dst / name)
+    files, out = image_folder_copy(src, dst)
     for p in files:
-        im = cv2.imread(str(p), cv2.IMREAD_COLOR)
-        if im is None:
-            raise InputError(f"{p}: cannot be read as an image")
-        rgb = add_overlay(cv2.cvtColor(im, cv2.COLOR_BGR2RGB), kind)
-        ok, buf = cv2.imencode(p.suffix, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        if not ok:
-            raise InputError(f"{p}: cannot be written as {p.suffix}")
-        write_bytes_atomic(out / p.name, buf.tobytes())
+        rewrite_image(p, out / p.name, lambda im: add_overlay(im, kind))
     return len(files)
 
 

@@ -20,15 +20,13 @@ a TUM-layout folder (``rgb.txt``, ``groundtruth.txt``, ``calib.txt``) are copied
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
 
 from data_tools.atomic import write_bytes_atomic
-from data_tools.frames import IMAGE_EXTENSIONS
+from data_tools.folder_copy import image_folder_copy, rewrite_image
 from mona_vo.errors import InputError
 
 KINDS = ("pulldown", "pulldown-jpeg", "stutter")
@@ -61,32 +59,15 @@ def shown_images(images: list[np.ndarray], kind: str) -> list[np.ndarray]:
 def write_stuttered_copy(src, dst) -> int:
     """Copy the image folder (or TUM-layout folder) ``src`` to ``dst`` with every fifth image
     replaced by the one before it (``stutter``); returns the number of images written."""
-    src, dst = Path(src), Path(dst)
-    if not src.is_dir():
-        raise InputError(f"{src}: not a folder")
-    images = src / "rgb" if (src / "rgb").is_dir() else src
-    files = sorted(p for p in images.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
-    if not files:
-        raise InputError(f"{images}: no images")
-    out = dst / images.relative_to(src)
-    out.mkdir(parents=True, exist_ok=True)
-    for name in ("rgb.txt", "groundtruth.txt", "calib.txt"):
-        if images != src and (src / name).is_file():
-            shutil.copy(src / name, dst / name)
+    files, out = image_folder_copy(src, dst)
     for p, i in zip(files, shown_order(len(files), "stutter")):
         # The held frame is the file before it, coded as that file is: a byte copy when the
         # formats agree, so it is the exact repeat a decoder gives.
         shown = files[i]
         if shown.suffix.lower() == p.suffix.lower():
             write_bytes_atomic(out / p.name, shown.read_bytes())
-            continue
-        im = cv2.imread(str(shown), cv2.IMREAD_COLOR)
-        if im is None:
-            raise InputError(f"{shown}: cannot be read as an image")
-        ok, buf = cv2.imencode(p.suffix, im)
-        if not ok:
-            raise InputError(f"{p}: cannot be written as {p.suffix}")
-        write_bytes_atomic(out / p.name, buf.tobytes())
+        else:
+            rewrite_image(shown, out / p.name, lambda im: im)
     return len(files)
 
 
