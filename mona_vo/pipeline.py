@@ -26,8 +26,8 @@ from mona_vo.config import check_fields, setting
 from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
 from mona_vo.tracking import TRACKERS
 from mona_vo.errors import ConfigError, InputError
-from mona_vo.picture_area import PictureArea, crop_frames, crop_to_picture
 from mona_vo.overlays import hide_overlay, overlay_ahead
+from mona_vo.picture_area import PictureArea, crop_frames, crop_to_picture
 from mona_vo.repeats import RepeatDetector
 from mona_vo.vo import VOConfig, VOResult, VisualOdometry
 
@@ -61,11 +61,10 @@ class PipelineConfig:
     hide_overlays: bool = setting(True)     # find burned-in logos and captions that stand
                                             # still in the first frames and paint them over
                                             # in every frame (mona_vo.overlays)
-    repeat_max_diff: float = setting(2.5, ge=0, le=255)  # a frame no 16 x 16 block of which
-                                            # differs from the last distinct frame by more than
-                                            # this many grey levels (mean, both smoothed by
-                                            # 1 px) is a repeat
-                                            # (pulldown, a stalled stream): it takes that
+    repeat_max_diff: float = setting(2.5, ge=0, le=255)  # grey levels: a frame no 16 x 16
+                                            # block of which differs more from the last
+                                            # distinct frame (mean, both smoothed by 1 px) is a
+                                            # repeat (pulldown, a stalled stream) and takes that
                                             # frame's pose and mask unprocessed
                                             # (mona_vo.repeats); 0 = off
     calibration: FocalConfig = field(default_factory=FocalConfig)  # focal length without
