@@ -52,6 +52,16 @@ def test_no_overlay_is_told_from_a_still_camera_or_a_still_half_of_the_picture()
     assert find_overlay(frames) is None                       # too large for an overlay
 
 
+def test_a_still_blob_inside_the_picture_is_a_followed_mover_not_an_overlay():
+    frames = _pan()
+    patch = _pan(n=1, h=40, w=60, seed=3)[0]
+    for f in frames:
+        f[60:100, 130:190] = patch                            # a car the camera keeps pace with
+    assert find_overlay(frames) is None
+    ov = find_overlay([add_overlay(f, "logo") for f in frames])
+    assert ov is not None and not ov[60:100, 130:190].any() and ov[_truth(frames[0], "logo")].any()
+
+
 def test_painted_over_the_logo_leaves_no_corner_there_and_keeps_the_frame():
     frames = [_F(i, add_overlay(f, "logo")) for i, f in enumerate(_pan())]
     ov = find_overlay([f.image for f in frames])
