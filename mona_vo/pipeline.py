@@ -392,10 +392,6 @@ class _Recorder:
         if self.vo is None or len(self.names) < 2:
             raise InputError(f"{where}a trajectory needs at least 2 frames; the input has "
                              f"{len(self.names)}")
-        if self.rows[-1] < 1:
-            raise InputError(f"{where}a trajectory needs at least 2 distinct frames; all "
-                             f"{len(self.names)} frames show the first one again "
-                             f"(repeat_max_diff {self.config.repeat_max_diff:g})")
         result = self.vo.finish()
         for stage, sec in result.timings.items():
             timings[f"vo.{stage}"] = sec

@@ -12,7 +12,6 @@ from data_tools.frames import open_frames
 from data_tools.masks_io import read_mask_png
 from data_tools.repeats import shown_images, shown_order, write_stuttered_copy
 from mona_vo.config import apply_overrides
-from mona_vo.errors import InputError
 from mona_vo.masks import compute_masks
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 from mona_vo.repeats import RepeatDetector, block_difference
@@ -125,10 +124,14 @@ def test_a_clip_with_repeats_gets_the_trajectory_and_masks_of_its_distinct_frame
     assert jt > 0.7 and jf < 0.5 * jt, (jt, jf)
 
 
-def test_a_clip_of_one_picture_is_refused_with_its_name():
+def test_a_clip_of_one_picture_stands_still_and_is_flagged():
+    # A tripod on a still scene: every frame after the first is a repeat of it. Each gets the
+    # first frame's pose (the VO's one frame: where the camera is, rotation-only) and is flagged.
     img = _texture()
-    with pytest.raises(InputError, match="2 distinct frames; all 3 frames show the first one"):
-        estimate_trajectory([_F(i, img) for i in range(3)], masks=None)
+    r = estimate_trajectory([_F(i, img) for i in range(5)], masks=None)
+    assert list(r.repeat_of) == [-1, 0, 0, 0, 0]
+    np.testing.assert_array_equal(r.vo.poses, np.repeat(np.eye(4)[None], 5, axis=0))
+    assert r.vo.low_confidence.all() and not r.vo.is_keyframe.any()
 
 
 def test_run_and_masks_report_repeats_of_a_stuttered_folder(small_scene, tmp_path):
