@@ -38,8 +38,9 @@ import cv2
 import numpy as np
 
 from mona_vo.conventions import working_size
+from mona_vo.picture_area import PictureFrame
 
-__all__ = ["OverlayConfig", "find_overlay", "overlay_ahead", "HiddenFrame", "hide_overlay"]
+__all__ = ["OverlayConfig", "find_overlay", "overlay_ahead", "hide_overlay"]
 
 
 @dataclass(frozen=True)
@@ -115,17 +116,6 @@ def overlay_ahead(frames: Iterable, config: OverlayConfig = OverlayConfig()):
 PAINT_SIZE = 640   # longer side, px, the overlay is painted over at (hide_overlay)
 
 
-@dataclass(frozen=True)
-class HiddenFrame:
-    """A frame whose picture (``image``) has its overlay painted over; ``full`` as read."""
-
-    index: int
-    timestamp: float
-    name: str
-    image: np.ndarray
-    full: np.ndarray
-
-
 class hide_overlay:
     """``frames`` with ``overlay`` (picture-sized bool) painted over in each picture. Re-iterable
     when ``frames`` is."""
@@ -158,9 +148,9 @@ class hide_overlay:
         out[part] = cv2.resize(fill, (w, h), interpolation=cv2.INTER_LINEAR)[part]
         return out
 
-    def __iter__(self) -> Iterator[HiddenFrame]:
+    def __iter__(self) -> Iterator[PictureFrame]:
         for f in self.frames:
             painted = f.image.copy()
             for rows, cols, part, small in self.boxes:
                 painted[rows, cols] = self._paint(f.image[rows, cols], part, small)
-            yield HiddenFrame(f.index, f.timestamp, f.name, painted, getattr(f, "full", f.image))
+            yield PictureFrame(f.index, f.timestamp, f.name, painted, getattr(f, "full", f.image))

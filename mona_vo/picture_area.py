@@ -27,7 +27,7 @@ import numpy as np
 
 from mona_vo.conventions import Intrinsics
 
-__all__ = ["PictureArea", "find_picture_area", "picture_area_ahead", "CroppedFrame",
+__all__ = ["PictureArea", "find_picture_area", "picture_area_ahead", "PictureFrame",
            "crop_frames", "crop_to_picture"]
 
 
@@ -132,8 +132,9 @@ def find_picture_area(images: Iterable[np.ndarray], *, max_std: float = 2.0,
 
 
 @dataclass(frozen=True)
-class CroppedFrame:
-    """A frame cut to its picture: ``image`` the picture, ``full`` the frame as read."""
+class PictureFrame:
+    """A frame as the run sees it: ``image`` its picture (cut to the bars, burned-in overlays
+    painted over: :mod:`mona_vo.overlays`), ``full`` the frame as read."""
 
     index: int
     timestamp: float
@@ -144,15 +145,15 @@ class CroppedFrame:
 
 class crop_frames:
     """``frames`` (objects with index, timestamp, name, image) cut to ``area``, as
-    :class:`CroppedFrame`. Re-iterable when ``frames`` is (a list, a FrameSource), so a second
+    :class:`PictureFrame`. Re-iterable when ``frames`` is (a list, a FrameSource), so a second
     VO pass reads the same pictures."""
 
     def __init__(self, frames: Iterable, area: PictureArea):
         self.frames, self.area = frames, area
 
-    def __iter__(self) -> Iterator[CroppedFrame]:
+    def __iter__(self) -> Iterator[PictureFrame]:
         for f in self.frames:
-            yield CroppedFrame(f.index, f.timestamp, f.name, self.area.crop(f.image), f.image)
+            yield PictureFrame(f.index, f.timestamp, f.name, self.area.crop(f.image), f.image)
 
 
 HEAD_FRAMES = 30   # frames read ahead to find the bars: a clip's first second
