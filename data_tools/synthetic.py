@@ -44,8 +44,9 @@ Camera
     sideways sway up to 1.5 m, a small vertical bob, yaw 0.4-1.1 deg/frame peak, pitch and roll
     below that. ``fast-rotation`` pans: yaw swings +-30-60 deg at a peak of 4-6 deg/frame (median
     over frames of the rotation 3-4.5 deg), pitch peaks at 2-3 deg/frame, forward 0.03-0.08
-    m/frame. Intrinsics: fx = fy from a horizontal field of view of 55-75 deg, principal point
-    within 2 % of the image centre, constant over the sequence. The camera, street and static boxes
+    m/frame. Intrinsics: fx = fy from a field of view of 55-75 deg across the longer side (a
+    portrait frame is a landscape camera turned, as on a phone), principal point within 2 % of the
+    image centre, constant over the sequence. The camera, street and static boxes
     depend only on the seed, n_frames, the aspect ratio and the preset's camera model, so
     ``static``, ``one-large`` and ``several`` with one seed show the same street and path.
 
@@ -204,8 +205,8 @@ class SceneConfig:
     n_frames: int = 50              # number of frames (2-100000)
     preset: str = "one-large"       # scene kind, a name in PRESETS
     seed: int = 0                   # seed of every random choice (non-negative integer)
-    hfov_deg: float | None = None   # horizontal field of view, degrees [10, 150]; None: drawn
-    #                                 (55-75 deg, mixed 40-90 deg)
+    hfov_deg: float | None = None   # field of view across the longer side, degrees [10, 150];
+    #                                 None: drawn (55-75 deg, mixed 40-90 deg)
     camera_path: str | None = None  # mixed only: a name in CAMERA_PATHS; None: drawn per seed
     effects: bool = True            # mixed only: image effects on RenderedFrame.image (False: none)
 
@@ -847,12 +848,14 @@ class SyntheticScene:
         rng = np.random.default_rng([cfg.seed, 1])
         hfov_range = (40.0, 90.0) if cfg.preset == "mixed" else (55.0, 75.0)
         hfov = np.radians(rng.uniform(*hfov_range) if cfg.hfov_deg is None else cfg.hfov_deg)
-        f = 0.5 * cfg.width / np.tan(hfov / 2.0)
+        f = 0.5 * max(cfg.width, cfg.height) / np.tan(hfov / 2.0)
         pp = rng.uniform(-0.02, 0.02, 2)
         self.intrinsics = Intrinsics(float(f), float(f),
                                      float((cfg.width - 1) / 2.0 + pp[0] * cfg.width),
                                      float((cfg.height - 1) / 2.0 + pp[1] * cfg.height))
-        self._hfov = float(hfov)
+        # Movers are placed across the horizontal field of view, narrower than the drawn one on a
+        # portrait frame.
+        self._hfov = float(hfov) if cfg.width >= cfg.height else float(2 * np.arctan(0.5 * cfg.width / f))
         if self._legacy:
             self._R_wc, self._centres, self._yaw = self._camera_path(rng, n, fast)
         else:
