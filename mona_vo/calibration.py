@@ -32,7 +32,8 @@ import numpy as np
 
 from ba.global_ba import KeyframeGraph, refine_global
 from ba.sliding_window_ba import BAConfig
-from mona_vo.conventions import Intrinsics, invert_pose, make_pose, rotation_angle_deg
+from mona_vo.conventions import (Intrinsics, focal_for_fov, fov_span, invert_pose, make_pose,
+                                  rotation_angle_deg)
 from mona_vo.config import setting
 from mona_vo.errors import ConfigError
 from mona_vo.tracking import LKTracker, to_gray
@@ -48,7 +49,7 @@ class FocalConfig:
                                             # guess of the assumed field of view
     frames: int = setting(40, ge=3)         # first frames looked at
     hfov_min_deg: float = setting(35.0, gt=5, lt=175)   # narrowest candidate field of view, deg
-    hfov_max_deg: float = setting(110.0, gt=5, lt=175)  # widest candidate field of view, deg
+    hfov_max_deg: float = setting(110.0, gt=5, lt=175)  # widest one (both across the longer side)
     candidates: int = setting(5, ge=2)      # held-focal candidates, evenly spaced in log focal
     freed_from: int = setting(2, ge=1)      # freed-focal solves start from this many best candidates
     keyframe_motion_px: float = setting(15.0, gt=0)  # median track motion between keyframes, px
@@ -75,10 +76,11 @@ class FocalConfig:
             raise ConfigError("config key 'calibration.hfov_min_deg': must be below "
                               "calibration.hfov_max_deg")
 
-    def candidate_focals(self, width: int) -> np.ndarray:
-        """(candidates,) focal lengths (px) from the widest to the narrowest field of view."""
-        lo = 0.5 * width / np.tan(np.radians(self.hfov_max_deg) / 2)
-        hi = 0.5 * width / np.tan(np.radians(self.hfov_min_deg) / 2)
+    def candidate_focals(self, span: int) -> np.ndarray:
+        """(candidates,) focal lengths (px) from the widest to the narrowest field of view across
+        ``span`` pixels (the longer side, :func:`mona_vo.conventions.fov_span`)."""
+        lo = focal_for_fov(span, self.hfov_max_deg)
+        hi = focal_for_fov(span, self.hfov_min_deg)
         return np.geomspace(lo, hi, self.candidates)
 
 
@@ -105,7 +107,7 @@ class FocalEstimate:
 
     focal: float
     guess: float
-    width: int
+    span: int
     estimate: float | None = None
     used: bool = False
     reason: str = ""
@@ -123,7 +125,7 @@ class FocalEstimate:
 
     @property
     def hfov_deg(self) -> float:
-        return float(np.degrees(2 * np.arctan(0.5 * self.width / self.focal)))
+        return float(np.degrees(2 * np.arctan(0.5 * self.span / self.focal)))
 
     def intrinsics_for(self, width: int, height: int) -> Intrinsics:
         """Pinhole intrinsics of a width x height frame: ``focal``, the estimated principal point
@@ -205,7 +207,7 @@ def _rmse(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r ** 2))) if len(r) else float("inf")
 
 
-def rotation_focal(tracks, keys: list[int], width: int, guess: Intrinsics,
+def rotation_focal(tracks, keys: list[int], span: int, guess: Intrinsics,
                    cfg: FocalConfig = FocalConfig()) -> dict:
     """Focal length and principal point under a pure-rotation model (a pan, or footage whose
     translation is too small for its depth): views of a turning camera map onto each other by
@@ -231,7 +233,7 @@ def rotation_focal(tracks, keys: list[int], width: int, guess: Intrinsics,
             pairs.append((ua[a][inl], ub[b][inl]))
     if not pairs:
         return {}
-    lo, hi = cfg.candidate_focals(width)[[0, -1]]
+    lo, hi = cfg.candidate_focals(span)[[0, -1]]
     grid = np.geomspace(lo, hi, 60)
     cost = np.array([_rmse(_rotation_residuals(pairs, f, guess.cx, guess.cy)) for f in grid])
     k = int(np.argmin(cost))
@@ -340,20 +342,21 @@ def estimate_focal(frames: list[np.ndarray], guess: Intrinsics,
     h, w = to_gray(frames[0]).shape
     frames = frames[:cfg.frames]
     tracks = _track(frames, cfg) if len(frames) >= 3 else {}
-    est = focal_from_tracks(tracks, w, guess, cfg)
+    est = focal_from_tracks(tracks, fov_span(w, h), guess, cfg)
     est.frames = len(frames)
     est.seconds = time.perf_counter() - t0
     return est
 
 
-def focal_from_tracks(tracks: dict, width: int, guess: Intrinsics,
+def focal_from_tracks(tracks: dict, span: int, guess: Intrinsics,
                       cfg: FocalConfig = FocalConfig()) -> FocalEstimate:
     """The estimate from point tracks: frame index (0, 1, ...) -> ((N,) int64 track ids,
-    (N, 2) float64 pixels x, y). See :func:`estimate_focal`."""
+    (N, 2) float64 pixels x, y); ``span``: the frame's longer side (px), which the candidates'
+    fields of view are measured across. See :func:`estimate_focal`."""
     t0 = time.perf_counter()
     cfg.validate()
-    w = int(width)
-    out = FocalEstimate(focal=guess.fx, guess=guess.fx, width=w, frames=len(tracks))
+    w = int(span)
+    out = FocalEstimate(focal=guess.fx, guess=guess.fx, span=w, frames=len(tracks))
     if len(tracks) < 3:
         out.reason = f"only {len(tracks)} frames: the guess is kept"
         out.seconds = time.perf_counter() - t0
@@ -368,7 +371,7 @@ def focal_from_tracks(tracks: dict, width: int, guess: Intrinsics,
                       f"twice: too little motion to see the focal length, the guess is kept")
         out.keyframes = len(keys)
     fmin, fmax = cfg.candidate_focals(w)[[0, -1]]
-    # A principal point more than 5 % of the width off the centre is not a lens (they are within
+    # A principal point more than 5 % of the longer side off the centre is not a lens (they are within
     # 2-3 %), it is translation absorbed by the fit.
     centred = rot and abs(rot["cx"] - guess.cx) <= 0.05 * w and abs(rot["cy"] - guess.cy) <= 0.05 * w
     if rot:

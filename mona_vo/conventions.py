@@ -102,9 +102,22 @@ def pose_from_tum_row(row) -> tuple[float, np.ndarray]:
     return float(t), make_pose(rotation_from_quat_wxyz([qw, qx, qy, qz]), [tx, ty, tz])
 
 
-# Horizontal field of view guessed for uncalibrated video, degrees (typical of phone and action
-# cameras). Runs take it from PipelineConfig's `assumed_hfov_deg`; this is the library fallback.
+# Field of view guessed for uncalibrated video, degrees (typical of phone and action cameras),
+# across the frame's longer side: a phone's portrait clip is its landscape camera turned, so its
+# narrow side sees less. Runs take it from PipelineConfig's `assumed_hfov_deg`; this is the library
+# fallback.
 DEFAULT_HFOV_DEG = 60.0
+
+
+def fov_span(width: int, height: int) -> int:
+    """The side of a width x height frame that an uncalibrated camera's fields of view (the guess,
+    the estimate's candidates) are measured across: the longer one."""
+    return max(int(width), int(height))
+
+
+def focal_for_fov(span: float, fov_deg: float) -> float:
+    """Focal length (px) at which ``span`` pixels (:func:`fov_span`) see ``fov_deg`` degrees."""
+    return 0.5 * span / float(np.tan(np.radians(fov_deg) / 2.0))
 
 
 @dataclass(frozen=True)
@@ -128,9 +141,10 @@ class Intrinsics:
 
     @classmethod
     def default_for(cls, width: int, height: int, fov_deg: float = DEFAULT_HFOV_DEG) -> "Intrinsics":
-        """A focal guess for uncalibrated video: horizontal field of view ``fov_deg`` (typical of
-        phone and action cameras), principal point at the image centre."""
-        f = 0.5 * width / np.tan(np.radians(fov_deg) / 2.0)
+        """A focal guess for uncalibrated video: field of view ``fov_deg`` across the longer side
+        (typical of phone and action cameras; :func:`focal_for_fov`), principal point at the image
+        centre."""
+        f = focal_for_fov(fov_span(width, height), fov_deg)
         return cls(f, f, (width - 1) / 2.0, (height - 1) / 2.0)
 
     def scaled(self, sx: float, sy: float | None = None) -> "Intrinsics":

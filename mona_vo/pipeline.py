@@ -51,9 +51,9 @@ class PipelineConfig:
     weights: str = setting("", text="a folder path")  # folder of neural checkpoints under their
                                             # documented names (mona_vo.neural.weights);
                                             # "" = $MONA_VO_WEIGHTS
-    assumed_hfov_deg: float = setting(DEFAULT_HFOV_DEG, ge=10, le=170)  # horizontal field of
-                                            # view assumed without --calib, degrees (masks, VO
-                                            # and report)
+    assumed_hfov_deg: float = setting(DEFAULT_HFOV_DEG, ge=10, le=170)  # field of view assumed
+                                            # without --calib, degrees, across the longer side
+                                            # (the width of a landscape frame); masks, VO, report
     crop_bars: bool = setting(True)         # find flat letterbox / pillarbox bars in the first
                                             # frames and run on the picture inside them
                                             # (mona_vo.picture_area); masks and intrinsics stay

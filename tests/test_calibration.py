@@ -12,8 +12,10 @@ from mona_vo.errors import ConfigError
 W, H = 640, 360
 
 
-def _tracks(f_true, *, turn_deg=0.4, step=0.04, n_frames=24, seed=0, noise=0.3, pp_offset=(0, 0)):
+def _tracks(f_true, *, turn_deg=0.4, step=0.04, n_frames=24, seed=0, noise=0.3, pp_offset=(0, 0),
+            size=(W, H)):
     """Tracks of a static point field seen by a camera walking and turning: frame -> (ids, uv)."""
+    W, H = size
     rng = np.random.default_rng(seed)
     pts = rng.uniform([-8, -3, 4], [8, 3, 25], (500, 3))
     cx, cy = (W - 1) / 2 + pp_offset[0], (H - 1) / 2 + pp_offset[1]
@@ -47,6 +49,20 @@ def test_focal_recovered_from_a_wrong_guess(true_hfov):
     assert abs(np.log(best["focal_px"] / f_true)) < abs(np.log(est.guess / f_true)) + 0.2
     d = est.as_dict()
     assert d["used"] and d["rotation_deg"] > 5 and d["parallax_deg"] > 0.1
+
+
+def test_a_portrait_clip_is_a_landscape_camera_turned():
+    # A phone held upright: 45 deg across the 640-px long side. Fields of view measured across the
+    # 360-px width put that camera's 773 px outside every candidate (35-110 deg across the width
+    # reach 571 px), so the estimate could only be refused; across the longer side it is found.
+    size = (360, 640)
+    f_true = 0.5 * 640 / np.tan(np.radians(45.0) / 2)
+    guess = Intrinsics.default_for(*size, 60.0)
+    assert guess.fx == pytest.approx(_guess().fx * 640 / W)   # the guess, too, spans the long side
+    est = focal_from_tracks(_tracks(f_true, turn_deg=0.6, size=size), max(size), guess)
+    assert est.used, est.reason
+    assert abs(est.focal - f_true) < 0.03 * f_true, (est.focal, f_true)
+    assert est.as_dict()["hfov_deg"] == pytest.approx(45.0, abs=1.5)
 
 
 def test_a_pan_gives_focal_length_and_principal_point_from_the_rotations():

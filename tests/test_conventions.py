@@ -70,6 +70,13 @@ def test_default_intrinsics_put_principal_point_at_image_centre():
     assert intr.fx == pytest.approx(320.0 / np.tan(np.radians(30.0)))
 
 
+def test_guessed_field_of_view_spans_the_longer_side():
+    # A portrait frame is a landscape camera turned (a phone held upright): same focal length.
+    upright = Intrinsics.default_for(480, 640)
+    assert upright.fx == Intrinsics.default_for(640, 480).fx
+    assert (upright.cx, upright.cy) == (239.5, 319.5)
+
+
 @pytest.mark.parametrize("scale", [0.5, 2.0, 0.25])
 def test_scaled_intrinsics_keep_pixel_centres(scale):
     intr = Intrinsics.default_for(640, 480)
