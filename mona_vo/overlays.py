@@ -9,9 +9,15 @@ corners at infinity turning with the camera. Online videos carry them more often
 
 The rule, on the first frames' grey images reduced to ``work_size`` (their longer side): a
 pixel is still when the mean image has a strong edge there (gradient at least ``min_edge``
-grey levels per pixel) and its level moves by at most ``max_std`` (standard deviation over
-the frames). A moving scene's edges blur out in the mean image and change level where they
-pass; an overlay's stay sharp and keep their level. When the level changes (by more than twice
+grey levels per pixel) and either its level moves by at most ``max_std`` (standard deviation over
+the frames) or its edge is coherent: the mean image's gradient is at least ``min_coherence`` of
+the frames' own mean gradient magnitude, so every frame has that edge, of that direction and
+strength. A moving scene's edges blur out in the mean image and change level where they
+pass; an opaque overlay's stay sharp and keep their level, and a semi-transparent one (a
+platform's handle at 60 % opacity) keeps its edges while its level follows the scene behind it.
+A blob's edges must also run in more than one direction (the smaller eigenvalue of its
+structure tensor at least ``min_isotropy`` of the larger): an edge the camera moves along (a
+horizon under a pan, the aperture problem) looks still at every pixel, letters and shapes do not. When the level changes (by more than twice
 ``max_std``) over less than ``min_moving_area`` of the picture, the camera stands (or nothing
 moves): an overlay cannot be told from the scene, and none is found. Still pixels closed into blobs (letters into
 words) that hold at least ``min_pixels`` still pixels and lie within ``edge_band`` of the
@@ -26,8 +32,8 @@ corner, no flow discontinuity, nothing still is left for masks or VO to see. Mas
 set inside the overlay: it is in front of any mover.
 
 Not found: overlays that change (a clock that ticks, captions that come and go within the
-first frames), ones that appear after the first frames, semi-transparent ones whose edges are
-weaker than ``min_edge``.
+first frames), ones that appear after the first frames, faint ones whose edges are weaker
+than ``min_edge``.
 """
 from __future__ import annotations
 
@@ -57,12 +63,16 @@ class OverlayConfig:
     grow_px: int = 3              # at work_size
     frames: int = 30              # read ahead
     step: int = 3                 # every third of them
+    min_coherence: float = 0.98   # mean image's edge / frames' mean edge (module docstring)
+    min_isotropy: float = 0.1     # a blob's structure tensor, smaller / larger eigenvalue
 
 
-def _edges(grey: np.ndarray) -> np.ndarray:
-    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3) / 4.0
-    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3) / 4.0
-    return cv2.magnitude(gx, gy)
+def _gradients(stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(frames, H, W) x and y gradients of (frames, H, W) float32 grey images, grey levels per
+    pixel."""
+    gx = np.stack([cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) for g in stack]) / 4.0
+    gy = np.stack([cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) for g in stack]) / 4.0
+    return gx, gy
 
 
 def find_overlay(images: Iterable[np.ndarray], config: OverlayConfig = OverlayConfig()
@@ -76,9 +86,12 @@ def find_overlay(images: Iterable[np.ndarray], config: OverlayConfig = OverlayCo
     size = working_size(w, h, config.work_size)
     stack = np.stack([cv2.resize(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY), size,
                                  interpolation=cv2.INTER_AREA) for im in images]).astype(np.float32)
-    mean = stack.mean(axis=0)
     std = stack.std(axis=0)
-    still = (_edges(mean) >= config.min_edge) & (std <= config.max_std)
+    gx, gy = _gradients(stack)
+    mgx, mgy = gx.mean(axis=0), gy.mean(axis=0)   # the mean image's gradient
+    edge = np.hypot(mgx, mgy)
+    coherence = edge / np.maximum(np.hypot(gx, gy).mean(axis=0), 1e-6)
+    still = (edge >= config.min_edge) & ((std <= config.max_std) | (coherence >= config.min_coherence))
     if not still.any() or np.mean(std > 2 * config.max_std) < config.min_moving_area:
         return None
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
@@ -89,7 +102,15 @@ def find_overlay(images: Iterable[np.ndarray], config: OverlayConfig = OverlayCo
     x1, y1 = x0 + stats[:, 2], y0 + stats[:, 3]
     bw, bh = config.edge_band * size[0], config.edge_band * size[1]
     by_an_edge = (y1 <= bh) | (y0 >= size[1] - bh) | (x1 <= bw) | (x0 >= size[0] - bw)
-    big = counts >= config.min_pixels
+    # An edge that the camera moves along looks still (the aperture problem: a horizon under a
+    # pan); an overlay's letters and shapes have edges of every direction. Isotropy: the smaller
+    # eigenvalue of a blob's structure tensor over the larger.
+    sxx = np.bincount(labels[still], (mgx * mgx)[still], minlength=n)
+    syy = np.bincount(labels[still], (mgy * mgy)[still], minlength=n)
+    sxy = np.bincount(labels[still], (mgx * mgy)[still], minlength=n)
+    half_gap = np.sqrt(0.25 * (sxx - syy) ** 2 + sxy ** 2)
+    isotropy = (0.5 * (sxx + syy) - half_gap) / np.maximum(0.5 * (sxx + syy) + half_gap, 1e-9)
+    big = (counts >= config.min_pixels) & (isotropy >= config.min_isotropy)
     big[0] = False
     g = 2 * config.grow_px + 1
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (g, g))

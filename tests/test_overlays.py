@@ -43,6 +43,37 @@ def test_a_logo_is_found_where_it_is_and_nothing_else():
     assert not (ov & ~near).any()                             # nothing away from it
 
 
+def test_a_semi_transparent_watermark_is_found_by_its_edges_not_its_level():
+    # 60 % opacity: the scene shows through, so the mark's level follows the texture passing
+    # behind it; its edges stay the same in every frame.
+    import dataclasses
+    from mona_vo.overlays import OverlayConfig
+
+    frames = [add_overlay(f, "watermark") for f in _pan()]
+    truth = _truth(_pan(n=1)[0], "watermark")
+    ov = find_overlay(frames)
+    assert ov is not None and ov[truth].mean() > 0.8
+    near = cv2.dilate(truth.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0
+    assert not (ov & ~near).any()
+    level_only = dataclasses.replace(OverlayConfig(), min_coherence=1.01)
+    missed = find_overlay(frames, level_only)
+    assert missed is None or missed[truth].mean() < 0.3        # the level test alone misses it
+
+
+def test_an_edge_the_camera_moves_along_is_not_an_overlay():
+    # A pan along a horizontal stripe (a horizon, a kerb): every pixel of it stays the same, as
+    # an overlay's would, but its edges have one direction (the aperture problem).
+    import dataclasses
+    from mona_vo.overlays import OverlayConfig
+
+    frames = _pan()
+    for f in frames:
+        f[12:18] = 240
+    assert find_overlay(frames) is None
+    found = find_overlay(frames, dataclasses.replace(OverlayConfig(), min_isotropy=0.0))
+    assert found is not None and found[12:18].any()            # without the isotropy test
+
+
 def test_no_overlay_is_told_from_a_still_camera_or_a_still_half_of_the_picture():
     still = [add_overlay(_pan(n=1)[0], "logo")] * 10         # a tripod: the scene stands too
     assert find_overlay(still) is None
@@ -83,8 +114,10 @@ def small_scene_frames(small_scene):
 def test_overlays_painted_over_give_the_masks_back(small_scene_frames):
     # Central claim. The small scene (one-large, 384 x 164, MONA masks, true intrinsics) with a
     # badge and a watermark burned in: MONA takes the standing badge for a mover. Measured mean
-    # J 0.090 (false positives 5.5 %) left in, 0.721 (1.0 %) painted over; 0.839 without the
-    # overlays. ATE % of path 0.163 -> 0.151 (0.153 without).
+    # J 0.090 (false positives 5.5 %) left in, 0.519 painted over; 0.839 without the overlays.
+    # Until stop 30 only the badge was found (0.721): the car passes under the watermark, and
+    # masks are not set inside an overlay, so painting the watermark too costs its pixels there
+    # (the watermark alone: 0.875 left in, 0.720 painted over).
     from eval.mask_metrics import region_similarity
 
     scene, pairs = small_scene_frames
@@ -98,7 +131,7 @@ def test_overlays_painted_over_give_the_masks_back(small_scene_frames):
                                 on_frame=lambda o: js.append(region_similarity(o.mask, truth[o.index])))
         j[hide] = float(np.mean(js))
         assert (r.overlay is not None) == hide
-    assert j[True] > 0.6 and j[False] < 0.5 * j[True], j
+    assert j[True] > 0.45 and j[False] < 0.25 * j[True], j
 
 
 def test_run_and_masks_report_the_overlay_and_copies_carry_it(small_scene, tmp_path):
