@@ -97,8 +97,8 @@ import numpy as np
 
 from data_tools.atomic import atomic_path, write_text_atomic
 from data_tools.sintel_formats import write_cam, write_dpt
-from mona_vo.conventions import (Intrinsics, make_pose, relative_pose, rotation_angle_deg,
-                                 tum_row)
+from mona_vo.conventions import (Intrinsics, fov_span, make_pose, relative_pose,
+                                 rotation_angle_deg, tum_row)
 from mona_vo.errors import ConfigError, MonaVoError
 
 log = logging.getLogger(__name__)
@@ -848,7 +848,7 @@ class SyntheticScene:
         rng = np.random.default_rng([cfg.seed, 1])
         hfov_range = (40.0, 90.0) if cfg.preset == "mixed" else (55.0, 75.0)
         hfov = np.radians(rng.uniform(*hfov_range) if cfg.hfov_deg is None else cfg.hfov_deg)
-        f = 0.5 * max(cfg.width, cfg.height) / np.tan(hfov / 2.0)
+        f = 0.5 * fov_span(cfg.width, cfg.height) / np.tan(hfov / 2.0)
         pp = rng.uniform(-0.02, 0.02, 2)
         self.intrinsics = Intrinsics(float(f), float(f),
                                      float((cfg.width - 1) / 2.0 + pp[0] * cfg.width),

@@ -355,25 +355,25 @@ def focal_from_tracks(tracks: dict, span: int, guess: Intrinsics,
     fields of view are measured across. See :func:`estimate_focal`."""
     t0 = time.perf_counter()
     cfg.validate()
-    w = int(span)
-    out = FocalEstimate(focal=guess.fx, guess=guess.fx, span=w, frames=len(tracks))
+    span = int(span)
+    out = FocalEstimate(focal=guess.fx, guess=guess.fx, span=span, frames=len(tracks))
     if len(tracks) < 3:
         out.reason = f"only {len(tracks)} frames: the guess is kept"
         out.seconds = time.perf_counter() - t0
         return out
     keys = _pick_keyframes(tracks, cfg)
-    rot = rotation_focal(tracks, keys, w, guess, cfg) if len(keys) >= 2 else {}
+    rot = rotation_focal(tracks, keys, span, guess, cfg) if len(keys) >= 2 else {}
     out.rotation_model = rot
     if len(keys) >= 3:
-        _reconstruction_estimate(out, tracks, keys, w, guess, cfg)
+        _reconstruction_estimate(out, tracks, keys, span, guess, cfg)
     else:
         out.reason = (f"the first {len(tracks)} frames move less than {cfg.keyframe_motion_px:g} px "
                       f"twice: too little motion to see the focal length, the guess is kept")
         out.keyframes = len(keys)
-    fmin, fmax = cfg.candidate_focals(w)[[0, -1]]
+    fmin, fmax = cfg.candidate_focals(span)[[0, -1]]
     # A principal point more than 5 % of the longer side off the centre is not a lens (they are within
     # 2-3 %), it is translation absorbed by the fit.
-    centred = rot and abs(rot["cx"] - guess.cx) <= 0.05 * w and abs(rot["cy"] - guess.cy) <= 0.05 * w
+    centred = rot and max(abs(rot["cx"] - guess.cx), abs(rot["cy"] - guess.cy)) <= 0.05 * span
     if rot:
         # Sharpness of the rotation model's curve, discounted by how much worse it fits than the
         # reconstruction (which has 3 more numbers per point, so fits noise better).
@@ -393,7 +393,7 @@ def focal_from_tracks(tracks: dict, span: int, guess: Intrinsics,
     return out
 
 
-def _reconstruction_estimate(out: FocalEstimate, tracks, keys, w: int, guess: Intrinsics,
+def _reconstruction_estimate(out: FocalEstimate, tracks, keys, span: int, guess: Intrinsics,
                              cfg: FocalConfig) -> None:
     """The multi-view reconstruction's estimate (module docstring), written into ``out``."""
     best = None
@@ -402,8 +402,8 @@ def _reconstruction_estimate(out: FocalEstimate, tracks, keys, w: int, guess: In
     # The freed solve's focal prior is only a guard (sigma 3 f): the candidates are guesses, and
     # the global BA's default prior (0.3 f) would pull a weakly constrained focal to its start.
     freed_cfg = BAConfig(global_max_iterations=cfg.freed_iterations, focal_prior_ratio=3.0)
-    for f in cfg.candidate_focals(w):
-        hfov = float(np.degrees(2 * np.arctan(0.5 * w / f)))
+    for f in cfg.candidate_focals(span):
+        hfov = float(np.degrees(2 * np.arctan(0.5 * span / f)))
         intr = Intrinsics(f, f, guess.cx, guess.cy)
         graph = _reconstruct(tracks, keys, intr, cfg.max_points)
         row = {"hfov_deg": round(hfov, 2), "focal_px": round(float(f), 2), "held_rmse_px": None,
@@ -438,7 +438,7 @@ def _reconstruction_estimate(out: FocalEstimate, tracks, keys, w: int, guess: In
     out.parallax_deg = _median_parallax_deg(graph, T, freed.lm_xyz, freed.lm_valid)
     held = [c["held_rmse_px"] for c in out.candidates if c["held_rmse_px"] is not None]
     contrast = max(held) / max(min(held), 1e-9) if held else 1.0
-    fmin, fmax = cfg.candidate_focals(w)[[0, -1]]
+    fmin, fmax = cfg.candidate_focals(span)[[0, -1]]
     if out.points < cfg.min_points:
         out.reason = f"only {out.points} points reconstructed: the guess is kept"
     elif contrast < cfg.min_contrast:

@@ -17,10 +17,11 @@ pass; an opaque overlay's stay sharp and keep their level, and a semi-transparen
 platform's handle at 60 % opacity) keeps its edges while its level follows the scene behind it.
 A blob's edges must also run in more than one direction (the smaller eigenvalue of its
 structure tensor at least ``min_isotropy`` of the larger): an edge the camera moves along (a
-horizon under a pan, the aperture problem) looks still at every pixel, letters and shapes do not. When the level changes (by more than twice
-``max_std``) over less than ``min_moving_area`` of the picture, the camera stands (or nothing
-moves): an overlay cannot be told from the scene, and none is found. Still pixels closed into blobs (letters into
-words) that hold at least ``min_pixels`` still pixels and lie within ``edge_band`` of the
+horizon under a pan, the aperture problem) looks still at every pixel, letters and shapes do
+not. When the level changes (by more than twice ``max_std``) over less than
+``min_moving_area`` of the picture, the camera stands (or nothing moves): an overlay cannot be
+told from the scene, and none is found. Still pixels closed into blobs (letters into words)
+that hold at least ``min_pixels`` still pixels and lie within ``edge_band`` of the
 picture from one of its sides, grown by ``grow_px``, are the overlay, unless they cover more
 than ``max_area`` of the picture (a still scene, not an overlay). Overlays are put along the
 frame's sides (a badge in a corner, a caption at the bottom), where they cover no subject; a
