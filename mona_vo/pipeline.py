@@ -215,7 +215,8 @@ def camera_ahead(frames: Iterable, config: "PipelineConfig", width: int, height:
 
 
 def _second_pass(source: Iterable, first: VOResult, vo_masks: list, size, start: Intrinsics,
-                 config: PipelineConfig, timings: dict) -> VOResult:
+                 config: PipelineConfig, timings: dict, occluded: np.ndarray | None = None
+                 ) -> VOResult:
     """The VO again over ``source``, starting from the camera the first pass's global
     refinement found (and refining it again at its end). The first pass built its map on the
     first-frames estimate, and a map built on a focal length 27 % short keeps part of that
@@ -239,7 +240,7 @@ def _second_pass(source: Iterable, first: VOResult, vo_masks: list, size, start:
     cx, cy = refine.get("centre_px", (start.cx, start.cy))
     camera = Intrinsics(f1, f1, cx, cy)
     vo = VisualOdometry(config.vo, size[0], size[1], camera, tracker=config.build_tracker(),
-                        camera_known=False)
+                        camera_known=False, occluded=occluded)
     n = 0
     try:
         for frame, packed in zip(source, vo_masks):
@@ -350,10 +351,6 @@ class _Recorder:
         # residual test for that frame. Caller masks are used as given.
         if mona is None:
             vo_mask = mask
-        if self.stream.overlay is not None:
-            # Painted over, the overlay changes with the scene around it without moving as it
-            # does: no track is kept or started there.
-            vo_mask = self.stream.overlay if vo_mask is None else vo_mask | self.stream.overlay
         full_mask = self.stream.full_mask(mask)
         pic = self.stream.cut
         if self.on_frame is not None:
@@ -381,7 +378,7 @@ class _Recorder:
                                                            *self.size)
             self.vo = VisualOdometry(self.config.vo, self.size[0], self.size[1], self.first_intr,
                                      tracker=self.config.build_tracker(),
-                                     camera_known=intr is not None)
+                                     camera_known=intr is not None, occluded=self.stream.overlay)
         self.vo.step(frame.image, timestamp=frame.timestamp, mask=vo_mask, intrinsics=intr)
         if self.may_rerun:
             self.vo_masks.append(None if vo_mask is None else np.packbits(vo_mask))
@@ -399,7 +396,7 @@ class _Recorder:
         if self.may_rerun:
             distinct = (f for f, r in zip(self.stream.source, repeat_of) if r < 0)
             result = _second_pass(distinct, result, self.vo_masks, self.size, self.first_intr,
-                                  self.config, timings)
+                                  self.config, timings, occluded=self.stream.overlay)
         if (repeat_of >= 0).any():
             result = _with_repeats(result, np.array(self.rows), repeat_of, self.stamps)
         return result

@@ -255,16 +255,22 @@ TRANSLATION_RATIO = 3.0   # parallax / noise floor that proves translation (vo_s
 class VisualOdometry:
     def __init__(self, config: VOConfig, width: int, height: int,
                  intrinsics: Intrinsics | None = None, *, tracker: Tracker | None = None,
-                 camera_known: bool | None = None):
+                 camera_known: bool | None = None, occluded: np.ndarray | None = None):
         """``intrinsics``: the camera (None: the default field-of-view guess). ``camera_known``
         (default: whether ``intrinsics`` was given) says whether they are the true camera; when
         not, and no frame brings its own, the global refinement may refine them
-        (``global_camera``)."""
+        (``global_camera``). ``occluded``: (H, W) bool pixels that are no part of the scene in
+        any frame (a burned-in overlay painted over): a track that reaches them ends there, as
+        at the frame's border, and none starts there."""
         config.validate()
         self.cfg = config
         self.width, self.height = int(width), int(height)
         self.default_intr = intrinsics or Intrinsics.default_for(width, height)
         self.tracker = tracker if tracker is not None else LKTracker()
+        # An overlay is not a mover: a track under it is not flagged (a mask's landmark is left
+        # out for good), it ends. Flagged, the floor points a forward walk carries through a
+        # watermark in a corner were lost to the map (Bonn crowd, README Results).
+        self._occluded = None if occluded is None or not np.any(occluded) else np.asarray(occluded, bool)
         self.map = VOMap()
         self.timings = defaultdict(float)
         self.drops = defaultdict(int)
@@ -399,6 +405,12 @@ class VisualOdometry:
         upd = self.tracker.step(gray)
         vis = upd.visible
         ids, uv = upd.ids[vis].astype(np.int64), upd.points[vis].astype(np.float64)
+        if self._occluded is not None:
+            under = pixels_in_mask(self._occluded, uv)
+            if under.any():
+                self.tracker.remove(ids[under])
+                self.drops["tracks_under_overlay"] += int(under.sum())
+                ids, uv = ids[~under], uv[~under]
         masked = pixels_in_mask(mask, uv) if mask is not None else np.zeros(len(ids), bool)
         if masked.any():
             self.drops["tracks_entering_masks"] += self.map.landmarks.flag(ids[masked],
@@ -431,10 +443,11 @@ class VisualOdometry:
 
     def _new_points(self, gray, obs: Observation, mask) -> tuple[np.ndarray, np.ndarray]:
         score = texture_score(gray, self.cfg.point_score)
-        exclude = None
+        exclude = self._occluded
         if mask is not None and mask.any():
             k = 2 * self.cfg.mask_dilate_px + 1
             exclude = cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+            exclude = exclude if self._occluded is None else exclude | self._occluded
         k = self.cfg.grid_size
         min_score = adaptive_min_score(score, self.cfg.point_min_score, self.cfg.point_quality)
         pts = grid_points(score, k, k, exclude=exclude, occupied=self._static(obs).uv,

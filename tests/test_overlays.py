@@ -156,3 +156,23 @@ def test_run_and_masks_report_the_overlay_and_copies_carry_it(small_scene, tmp_p
     with pytest.raises(ValueError, match="overlay kind"):
         add_overlay(np.zeros((8, 8, 3), np.uint8), "clock")
     assert set(KINDS) == {"logo", "watermark", "both"}
+
+
+def test_the_vo_ends_tracks_under_an_overlay_and_flags_none():
+    # An overlay is an occluder fixed in the image, not a mover: a track that reaches it ends
+    # (as at the frame's border) and none starts there. Flagged as a mask's would be, every
+    # landmark that passed under it was left out of the map for good.
+    from mona_vo.conventions import pixels_in_mask
+    from mona_vo.vo import VisualOdometry, VOConfig
+    from mona_vo.vo_map import LandmarkFlag
+
+    frames = _pan(n=12, step=4)
+    occluded = np.zeros(frames[0].shape[:2], bool)
+    occluded[:, 200:240] = True                      # the pan carries every point across it
+    vo = VisualOdometry(VOConfig(), frames[0].shape[1], frames[0].shape[0], occluded=occluded)
+    for i, f in enumerate(frames):
+        vo.step(f, timestamp=float(i))
+        live = vo.tracker.live()
+        assert not pixels_in_mask(occluded, live.points[live.visible]).any()
+    assert vo.drops["tracks_under_overlay"] > 0
+    assert not (vo.map.landmarks.flags & np.uint8(LandmarkFlag.MASKED)).any()
