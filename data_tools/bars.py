@@ -12,13 +12,10 @@ gets the bars.
 """
 from __future__ import annotations
 
-import argparse
-import sys
-
 import cv2
 import numpy as np
 
-from data_tools.folder_copy import image_folder_copy, rewrite_image
+from data_tools.folder_copy import copy_tool_main, image_folder_copy, rewrite_image
 from mona_vo.errors import InputError
 
 KINDS = ("letterbox", "pillarbox", "window", "letterbox-jpeg")
@@ -59,23 +56,17 @@ def write_barred_copy(src, dst, kind: str = "letterbox", frac: float = 0.12) -> 
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m data_tools.bars", description=__doc__.split("\n\n")[0])
-    ap.add_argument("src")
-    ap.add_argument("dst")
-    ap.add_argument("--kind", choices=KINDS, default="letterbox")
-    ap.add_argument("--frac", type=float, default=0.12)
-    args = ap.parse_args(argv)
-    if not 0 < args.frac < 0.5:
-        print(f"error: --frac must lie in (0, 0.5), not {args.frac}", file=sys.stderr)
-        return 1
-    try:
-        n = write_barred_copy(args.src, args.dst, args.kind, args.frac)
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    print(f"wrote {n} images with {args.kind} bars to {args.dst}")
-    return 0
+    def options(ap) -> None:
+        ap.add_argument("--kind", choices=KINDS, default="letterbox")
+        ap.add_argument("--frac", type=float, default=0.12)
 
+    def write(args) -> str:
+        if not 0 < args.frac < 0.5:
+            raise InputError(f"--frac must lie in (0, 0.5), not {args.frac}")
+        n = write_barred_copy(args.src, args.dst, args.kind, args.frac)
+        return f"wrote {n} images with {args.kind} bars to {args.dst}"
+
+    return copy_tool_main(argv, "python -m data_tools.bars", __doc__, write, options)
 
 if __name__ == "__main__":
     raise SystemExit(main())

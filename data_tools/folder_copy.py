@@ -4,7 +4,9 @@ names and formats, and a TUM-layout folder's text files (``rgb.txt``, ``groundtr
 ``calib.txt``) copied with it, so the copy runs through the same commands as the original."""
 from __future__ import annotations
 
+import argparse
 import shutil
+import sys
 from pathlib import Path
 from typing import Callable
 
@@ -46,3 +48,23 @@ def rewrite_image(src: Path, dst: Path, change: Callable[[np.ndarray], np.ndarra
     if not ok:
         raise InputError(f"{dst}: cannot be written as {dst.suffix}")
     write_bytes_atomic(dst, buf.tobytes())
+
+
+def copy_tool_main(argv, prog: str, doc: str, write: Callable[[argparse.Namespace], str],
+                   options: Callable[[argparse.ArgumentParser], None] | None = None) -> int:
+    """The command line of a copy tool: ``SRC DST`` and ``options``; ``write(args)`` makes the
+    copy and returns the line to print. Bad input (an InputError): one line on stderr naming
+    the file, exit status 1."""
+    ap = argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0])
+    ap.add_argument("src")
+    ap.add_argument("dst")
+    if options is not None:
+        options(ap)
+    args = ap.parse_args(argv)
+    try:
+        said = write(args)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(said)
+    return 0

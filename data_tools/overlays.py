@@ -10,14 +10,10 @@ folder (``rgb.txt``, ``groundtruth.txt``, ``calib.txt``) are copied with it.
 """
 from __future__ import annotations
 
-import argparse
-import sys
-
 import cv2
 import numpy as np
 
-from data_tools.folder_copy import image_folder_copy, rewrite_image
-from mona_vo.errors import InputError
+from data_tools.folder_copy import copy_tool_main, image_folder_copy, rewrite_image
 
 KINDS = ("logo", "watermark", "both")
 
@@ -54,20 +50,12 @@ def write_overlaid_copy(src, dst, kind: str = "logo") -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m data_tools.overlays",
-                                 description=__doc__.split("\n\n")[0])
-    ap.add_argument("src")
-    ap.add_argument("dst")
-    ap.add_argument("--kind", choices=KINDS, default="logo")
-    args = ap.parse_args(argv)
-    try:
+    def write(args) -> str:
         n = write_overlaid_copy(args.src, args.dst, args.kind)
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    print(f"wrote {n} images with a {args.kind} to {args.dst}")
-    return 0
+        return f"wrote {n} images with a {args.kind} to {args.dst}"
 
+    return copy_tool_main(argv, "python -m data_tools.overlays", __doc__, write,
+                          lambda ap: ap.add_argument("--kind", choices=KINDS, default="logo"))
 
 if __name__ == "__main__":
     raise SystemExit(main())

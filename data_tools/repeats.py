@@ -19,15 +19,11 @@ a TUM-layout folder (``rgb.txt``, ``groundtruth.txt``, ``calib.txt``) are copied
 """
 from __future__ import annotations
 
-import argparse
-import sys
-
 import cv2
 import numpy as np
 
 from data_tools.atomic import write_bytes_atomic
-from data_tools.folder_copy import image_folder_copy, rewrite_image
-from mona_vo.errors import InputError
+from data_tools.folder_copy import copy_tool_main, image_folder_copy, rewrite_image
 
 KINDS = ("pulldown", "pulldown-jpeg", "stutter")
 
@@ -72,19 +68,11 @@ def write_stuttered_copy(src, dst) -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m data_tools.repeats",
-                                 description=__doc__.split("\n\n")[0])
-    ap.add_argument("src")
-    ap.add_argument("dst")
-    args = ap.parse_args(argv)
-    try:
+    def write(args) -> str:
         n = write_stuttered_copy(args.src, args.dst)
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    print(f"wrote {n} images, every fifth holding the one before it, to {args.dst}")
-    return 0
+        return f"wrote {n} images, every fifth holding the one before it, to {args.dst}"
 
+    return copy_tool_main(argv, "python -m data_tools.repeats", __doc__, write)
 
 if __name__ == "__main__":
     raise SystemExit(main())
