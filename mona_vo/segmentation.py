@@ -16,11 +16,13 @@ initialised from motion and prompts, per prompt region:
   ``point_seed_frac`` (of the diagonal) on the dynamic points inside the box. The prior and the
   points keep a mover whose motion runs along its epipolar lines for a few frames (the dense map
   misses it) segmented (measured: synthetic one-large IoU 0.85 -> 0.89, DAVIS dog J 0.56 ->
-  0.64). When the seeds cover less than ``min_moving_frac`` of the box, an inner rectangle of
-  the box is probable foreground, as in GrabCut's own rectangle initialisation (a box prompt
-  says "an object is here", as for SAM). When GrabCut keeps less than ``min_keep_frac`` of the
-  seeds (colours shared with the background), the seeds are added back (for points: the inner
-  disks).
+  0.64). When the seeds cover less than ``min_moving_frac`` of the box, the whole box is
+  probable foreground, as in GrabCut's own rectangle initialisation (a box prompt says "an
+  object is here", as for SAM; an inner rectangle, as before stop 31, left the box's rim to the
+  background model, which then took the object's rim and colours from it: DAVIS J from the
+  true boxes 0.512 / 0.500 -> 0.637 / 0.566, tuning / validation). When GrabCut keeps less than
+  ``min_keep_frac`` of the seeds (colours shared with the background), the seeds are added back
+  (for points: the inner disks).
 * point prompts (no boxes): points are grouped (single linkage, ``point_link_frac`` of the image
   diagonal) and each group is cut on its own. The mask stays within ``point_radius_frac`` (of the
   diagonal) of the points; disks of half that radius are probable foreground, the rest of the
@@ -96,7 +98,7 @@ class GrabCutConfig:
     dilate_px: int = setting(2, ge=0)  # final mask dilation, full-resolution pixels
     max_regions: int = setting(8, ge=1)  # at most this many prompt regions are segmented
     min_moving_frac: float = setting(0.02, ge=0, le=1)  # a box with fewer moving pixels than this share is segmented
-                                     # by colour from a centred rectangle (a box means an object)
+                                     # by colour from the whole box (a box means an object)
     seed: int = setting(0, ge=0)  # OpenCV RNG seed set before each GrabCut (reproducible)
     min_keep_frac: float = setting(0.3, ge=0, le=1)  # GrabCut keeping less than this share of a region's moving
                                      # (points: prompted) pixels is overruled: they are added
@@ -261,9 +263,8 @@ class GrabCutSegmenter(Segmenter):
             init[seed] = cv2.GC_PR_FGD
             fallback = seed
         else:
-            # Nothing moves in the box: segment its object by colour from a centred rectangle.
-            iy, ix = max((q1 - q0) // 8, 0), max((b1 - b0) // 8, 0)
-            init[q0 - r0 + iy:q1 - r0 - iy, b0 - c0 + ix:b1 - c0 - ix] = cv2.GC_PR_FGD
+            # Nothing moves in the box: its object by colour, from the whole box.
+            init[inner] = cv2.GC_PR_FGD
             fallback = np.zeros(init.shape, bool)
             fallback[inner] = True
         seg = self._cut(small, init, (c0, r0, c1, r1), fallback)

@@ -1,0 +1,46 @@
+"""The ``grabcut`` segmenter's start labels: what a box prompt makes of an object whose parts
+differ in colour."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from mona_vo.detection import Boxes, FrameContext
+from mona_vo.segmentation import GrabCutConfig, GrabCutSegmenter
+
+H, W = 120, 256
+
+
+def _scene(seed=0):
+    """A grey textured background and a 60 x 60 object at (100, 30): its top half red, its
+    bottom half blue (colours the background does not have)."""
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(60, 200, (H, W)).astype(np.float32), (0, 0), 1.5)
+    img = np.repeat(img[..., None], 3, axis=2).astype(np.uint8)
+    obj = np.zeros((H, W), bool)
+    obj[30:90, 100:160] = True
+    img[30:60, 100:160] = (200, 30, 30)
+    img[60:90, 100:160] = (30, 30, 200)
+    return img, obj
+
+
+def _iou(a, b):
+    return (a & b).sum() / max((a | b).sum(), 1)
+
+
+def _segmenter():
+    # At the image's own size, no edge refinement or dilation: the cut's labels are the mask.
+    return GrabCutSegmenter(GrabCutConfig(work_size=W, refine_radius_px=0, dilate_px=0))
+
+
+def test_a_box_without_motion_keeps_the_object_out_to_its_rim():
+    """A tight box and no motion (a detector's box, or the true box): the whole box is probable
+    foreground, as GrabCut's rectangle start; an inner rectangle left the box's rim -- here the
+    object's red top and blue bottom eighths -- to the background model."""
+    img, obj = _scene()
+    img[37:83, 100:160] = (30, 200, 30)               # a green core, red and blue rims
+    box = Boxes(np.array([[100, 30, 159, 89]], np.float32), np.ones(1, np.float32),
+                np.array(["person"]))
+    mask = _segmenter().segment(img, box)
+    assert mask[30:36, 102:158].mean() > 0.9 and mask[84:90, 102:158].mean() > 0.9
+    assert _iou(mask, obj) > 0.85
