@@ -6,12 +6,16 @@ Library functions return plain rows (lists of dicts); only ``python -m eval.mask
 * :func:`synthetic_rows`: per preset and seed of :mod:`data_tools.synthetic`, the mean over frames
   of the mask IoU against the GT mask (DAVIS J, 1 when both masks are empty), boundary F, and the
   false-positive area (mask pixels outside the GT mask, fraction of the image); presets without
-  movers ('static') are judged by the false-positive area. With ``gt_boxes`` (``--modes
-  gt-boxes``) the segmenter alone, prompted with the true boxes.
+  movers ('static') are judged by the false-positive area. With ``mode`` 'gt-boxes' the
+  segmenter alone, prompted with the true boxes; with 'gt-detector' the whole method with a
+  perfect object detector (:class:`TrueBoxDetector`).
 * :func:`davis_rows`: DAVIS J and F (all frames, :func:`eval.mask_metrics.evaluate_mask_sequence`)
   per sequence and prompt mode ('boxes', 'points', 'raw-boxes'), and 'gt-boxes': the segmenter
   alone, prompted with the boxes of the true mask's parts (:func:`gt_box_masks`), what the
-  segmentation stage reaches when detection and filter are perfect.
+  segmentation stage reaches when detection and filter are perfect; and 'gt-detector': the whole
+  method (motion seeds, the paper's box filter, the evidence bound) with a detector that finds
+  every annotated object and nothing else, what an object detector back end (``yolo``) would at
+  best give the method.
 * :func:`speed_rows`: wall-clock seconds per frame of each stage (``MaskFrame.seconds``) on a
   1024 x 436 input (the real Sintel clip when present, else a generated scene; decoding and
   rendering are not timed).
@@ -26,20 +30,27 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from eval.mask_metrics import boundary_f, evaluate_mask_sequence, region_similarity
+from mona_vo.detection import Boxes, Detector, mask_to_boxes
 from mona_vo.masks import STAGES, MaskConfig, compute_masks
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 DYNAMIC_PRESETS = ("one-large", "several", "fast-rotation")
 
 
+SYNTHETIC_MODES = ("boxes", "gt-boxes", "gt-detector")
+
+
 def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                    seeds: Sequence[int] = (0, 1, 2), n_frames: int = 30, width: int = 1024,
                    height: int = 436, config: MaskConfig | None = None,
-                   use_intrinsics: bool = False, gt_boxes: bool = False) -> list[dict]:
+                   use_intrinsics: bool = False, mode: str = "boxes") -> list[dict]:
     """One row per (preset, seed): J (mean IoU), F, false-positive area fraction, mask and GT area
     fractions, frames. ``use_intrinsics`` passes the scene's true intrinsics to the masker
-    (default: the masker's uncalibrated guess, as for an online video). ``gt_boxes``: the
-    segmenter alone, prompted with the true masks' part boxes (:func:`gt_box_masks`)."""
+    (default: the masker's uncalibrated guess, as for an online video). ``mode``: 'boxes' the
+    method; 'gt-boxes' the segmenter alone, prompted with the true masks' part boxes
+    (:func:`gt_box_masks`); 'gt-detector' the method with :class:`TrueBoxDetector`."""
+    if mode not in SYNTHETIC_MODES:
+        raise ValueError(f"mode {mode!r}: one of {', '.join(SYNTHETIC_MODES)}")
     from data_tools.synthetic import SceneConfig, SyntheticScene
 
     config = config or MaskConfig()
@@ -56,13 +67,16 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                     gts[i] = f.mask
                     yield i, f.image
 
-            if gt_boxes:
+            intrinsics = scene.intrinsics if use_intrinsics else None
+            if mode == "gt-boxes":
                 images = [image for _, image in frames()]
                 truth = [gts[i] for i in range(len(images))]
                 found = zip(range(len(images)), gt_box_masks(images, truth, config))
             else:
+                # The detector reads the truth of frames already rendered (``gts``) by index.
+                backends = {"detector": TrueBoxDetector(gts)} if mode == "gt-detector" else {}
                 found = ((out.index, out.mask) for out in
-                         compute_masks(frames(), config, scene.intrinsics if use_intrinsics else None))
+                         compute_masks(frames(), config, intrinsics, **backends))
             J, F, fp, area, gt_area = [], [], [], [], []
             for index, mask in found:
                 gt = gts.pop(index)
@@ -96,21 +110,43 @@ DAVIS_VALIDATE = ("blackswan", "cows", "goat", "scooter-black")    # never tuned
 DAVIS_ROOTS = ("davis2016", "davis2016_more")                       # shared folders, same layout
 
 
+def true_boxes(gt: np.ndarray, label: str = "object"):
+    """:class:`~mona_vo.detection.Boxes` of the 8-connected parts of an (H, W) true mask, parts
+    under 0.1 % of the image dropped, each labelled ``label``."""
+    gt = np.asarray(gt, bool)
+    xyxy, _ = mask_to_boxes(gt, max(1, int(0.001 * gt.size)))
+    return Boxes.from_arrays(xyxy, label=np.full(len(xyxy), label))
+
+
+class TrueBoxDetector(Detector):
+    """A detector (:class:`mona_vo.detection.Detector`'s interface) that finds every annotated
+    object and nothing else: the boxes of the true mask's parts of the frame
+    (``FrameContext.frame_index``, looked up in ``truth``: a mapping frame index -> (H, W)
+    bool mask), labelled as an object detector labels them. The method around it (motion
+    seeds, the box filter, the evidence bound, the segmenter) is unchanged."""
+
+    def __init__(self, truth):
+        self.truth = truth
+
+    def detect(self, image, context=None):
+        if context is None or context.frame_index not in self.truth:
+            return Boxes.empty()
+        return true_boxes(self.truth[context.frame_index])
+
+
 def gt_box_masks(images: Iterable[np.ndarray], gts: Iterable[np.ndarray],
                  config: MaskConfig, device: str = "cpu") -> list[np.ndarray]:
     """Masks of ``config``'s segmenter prompted with one box per 8-connected part of each true
     mask (parts under 0.1 % of the image dropped), without the masker's motion context: the
     detector and the box filter replaced by the truth."""
-    from mona_vo.detection import Boxes, mask_to_boxes
     from mona_vo.masks import build_segmenter
 
     segmenter = build_segmenter(config, device)
     out = []
     for image, gt in zip(images, gts):
-        gt = np.asarray(gt, bool)
-        xyxy, _ = mask_to_boxes(gt, max(1, int(0.001 * gt.size)))
-        out.append(segmenter.segment(image, Boxes.from_arrays(xyxy)) if len(xyxy)
-                   else np.zeros(gt.shape, bool))
+        boxes = true_boxes(gt)
+        out.append(segmenter.segment(image, boxes) if len(boxes)
+                   else np.zeros(np.shape(gt), bool))
     return out
 
 
@@ -160,8 +196,14 @@ def davis_rows(root: str | Path | None = None,
                                      pipeline.device if pipeline is not None else "cpu")
             else:
                 frames = ((f.index, f.image) for f in ds.frames(max_frames=max_frames))
+                backends, prompt = {}, mode
+                if mode == "gt-detector":
+                    truth = {f.index: m for f, m in zip(ds.frames(max_frames=max_frames),
+                                                        ds.masks())}
+                    backends, prompt = {"detector": TrueBoxDetector(truth)}, "boxes"
                 preds = [out.mask for out in
-                         compute_masks(frames, dataclasses.replace(config, prompt=mode), intrinsics)]
+                         compute_masks(frames, dataclasses.replace(config, prompt=prompt),
+                                       intrinsics, **backends)]
                 gts = [m for m, _ in zip(ds.masks(), preds)]
             sec = (time.perf_counter() - t0) / max(len(preds), 1)
             metrics = evaluate_mask_sequence(preds, gts)
@@ -255,8 +297,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--frames", type=int, default=30, help="frames per synthetic scene")
     parser.add_argument("--size", default="1024x436", help="synthetic image size WxH")
     parser.add_argument("--modes", default="boxes",
-                        help="DAVIS prompt modes: boxes,points,raw-boxes,gt-boxes (the generated "
-                             "scenes: boxes, or gt-boxes alone)")
+                        help="DAVIS prompt modes: boxes,points,raw-boxes,gt-boxes,gt-detector (the "
+                             "generated scenes: one of boxes, gt-boxes, gt-detector)")
     parser.add_argument("--calib", choices=("guess", "estimate"), default="estimate",
                         help="DAVIS: the masker's camera, the focal length `mona-vo masks` and "
                              "`run` estimate (default) or the 60-degree field-of-view guess")
@@ -286,11 +328,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         print("\n== DAVIS-2016 means: tuning part, validation part, all ==")
         print(format_table(split_means(rows)), flush=True)
     if "synthetic" in parts:
-        # Of the prompt modes, the generated scenes take gt-boxes (the segmenter alone) or the
-        # method's boxes.
+        # Of the prompt modes, the generated scenes take one: the method's boxes, gt-boxes (the
+        # segmenter alone) or gt-detector (the method with a perfect object detector).
+        if args.modes not in SYNTHETIC_MODES:
+            parser.error(f"--modes {args.modes}: the generated scenes take one of "
+                         f"{', '.join(SYNTHETIC_MODES)}")
         rows = synthetic_rows(presets=tuple(args.presets.split(",")), seeds=seeds,
                               n_frames=args.frames, width=w, height=h, config=config,
-                              gt_boxes=args.modes == "gt-boxes")
+                              mode=args.modes)
         print("\n== synthetic scenes, per seed ==")
         print(format_table(rows))
         print("\n== synthetic scenes, per preset (J = mean IoU; static: fp_area) ==")

@@ -59,6 +59,10 @@ from mona_vo.registry import Registry
 
 DETECTORS = Registry("detector")
 
+# The label of boxes drawn around motion (the ``motion`` detector, the masker's evidence
+# regions); any other label is an object detector's class: a box around a whole object.
+MOTION_LABEL = "moving-region"
+
 
 @dataclass(frozen=True, eq=False)
 class Boxes:
@@ -66,7 +70,7 @@ class Boxes:
 
     xyxy:  (N, 4) float32 x0, y0, x1, y1, pixels (closed rectangles, module docstring).
     score: (N,) float32 detector confidence (motion detector: mean motion / motion_theta).
-    label: (N,) str class names ('moving-region' for the motion detector).
+    label: (N,) str class names (:data:`MOTION_LABEL` for boxes drawn around motion).
     """
 
     xyxy: np.ndarray
@@ -93,6 +97,12 @@ class Boxes:
         score = np.ones(n, np.float32) if score is None else np.asarray(score, np.float32)
         label = np.full(n, "object") if label is None else np.asarray(label)
         return cls(xyxy, score, label)
+
+    @property
+    def from_motion(self) -> np.ndarray:
+        """(N,) bool: the boxes drawn around motion (:data:`MOTION_LABEL`); the others are an
+        object detector's, each around a whole object."""
+        return np.asarray(self.label) == MOTION_LABEL
 
     def select(self, keep: np.ndarray) -> "Boxes":
         """The boxes where the (N,) bool ``keep`` is True (copies)."""
@@ -169,7 +179,11 @@ class FrameContext:
 
 class Detector(ABC):
     """Object detector. Back ends are built by name from :data:`DETECTORS`; classical ones take
-    ``config=`` (their frozen config dataclass), neural ones ``device=``."""
+    ``config=`` (their frozen config dataclass), neural ones ``device=``. ``draws_motion``: its
+    boxes are drawn around motion (:data:`MOTION_LABEL`), not around whole objects; the masker
+    then adds the boxes of the objects it follows (``mona_vo.masks``)."""
+
+    draws_motion = False
 
     @abstractmethod
     def detect(self, image: np.ndarray, context: FrameContext | None = None) -> Boxes:
@@ -317,6 +331,8 @@ def _to_full_resolution(xyxy: np.ndarray, sx: float, sy: float) -> np.ndarray:
 class MotionDetector(Detector):
     """Class-agnostic boxes around regions whose flow disagrees with the camera's motion."""
 
+    draws_motion = True
+
     def __init__(self, config: MotionDetectorConfig | None = None):
         self.config = config or MotionDetectorConfig()
         self.config.validate()
@@ -380,7 +396,7 @@ class MotionDetector(Detector):
         if cfg.merge_overlap < 1:
             xyxy, score = merge_boxes(xyxy, score, cfg.merge_overlap)
         order = np.argsort(-score)[:cfg.max_boxes]
-        boxes = Boxes(xyxy[order], score[order], np.full(len(order), "moving-region"))
+        boxes = Boxes(xyxy[order], score[order], np.full(len(order), MOTION_LABEL))
         return boxes.clipped(W, H)
 
 

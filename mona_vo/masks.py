@@ -71,8 +71,8 @@ import numpy as np
 from mona_vo.box_filter import UNIT_RULES, BoxFilterResult, adaptive_box_filter
 from mona_vo.config import check_fields, setting
 from mona_vo.conventions import Intrinsics, working_size
-from mona_vo.detection import (DETECTORS, Boxes, Detector, FrameContext, MotionDetectorConfig,
-                               _to_full_resolution, box_pixel_ranges, mask_to_boxes, merge_boxes)
+from mona_vo.detection import (DETECTORS, MOTION_LABEL, Boxes, Detector, FrameContext,
+                               MotionDetectorConfig, _to_full_resolution, box_pixel_ranges, mask_to_boxes, merge_boxes)
 from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, NO_MODEL, DynamicPoints,
                                     DynamicPointsConfig, DynamicPointsTracker,
                                     adaptive_threshold, classify_window, default_intrinsics,
@@ -536,8 +536,13 @@ class MonaMasker:
         filt = None
         if cfg.prompt == "boxes":
             filt = adaptive_box_filter(boxes.xyxy, dyn_xy, cfg.tau0, cfg.box_filter_unit)
-            kept = boxes.select(filt.keep)
-            if use_evidence:
+            keep = filt.keep
+            if use_evidence and not self.detector.draws_motion and found.any():
+                # An object's box that the filter drops in this frame (too few dynamic points
+                # on it now) stays while it holds an object followed.
+                keep = keep | self._holds(boxes, found, image.shape[:2])
+            kept = boxes.select(keep)
+            if use_evidence and self.detector.draws_motion:
                 kept = self._with_evidence(kept, found, allowed, image.shape[:2])
         elif cfg.prompt == "raw-boxes":
             kept = boxes
@@ -548,7 +553,9 @@ class MonaMasker:
             mask = self.segmenter.segment(image, None, dyn_xy, context)
         elif len(kept):
             mask = self.segmenter.segment(image, kept, None, context)
-            if allowed is not None:
+            if allowed is not None and self.detector.draws_motion:
+                # Regions drawn around motion stay within the evidence's bound; an object
+                # detector's box bounds its object's mask itself.
                 mask &= self._upsample(allowed, image.shape[:2])
         else:
             mask = np.zeros(image.shape[:2], bool)
@@ -625,16 +632,23 @@ class MonaMasker:
         carried = mask_evidence.carry(self._logodds, self._prev_flow, 0.0, ev)
         return mask_evidence.update(carried, obs, ev)
 
+    @staticmethod
+    def _holds(boxes: Boxes, found: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """(N,) bool: the boxes that overlap the (h, w) bool regions ``found`` (analysis
+        resolution) of a frame of ``shape`` (H, W)."""
+        H, W = shape
+        h, w = found.shape
+        ranges = box_pixel_ranges(_to_full_resolution_boxes(boxes.xyxy, w / W, h / H), w, h)
+        return np.array([found[r0:r1, c0:c1].any() for c0, r0, c1, r1 in ranges], bool)
+
     def _with_evidence(self, kept: Boxes, found: np.ndarray, allowed: np.ndarray | None,
                        shape: tuple[int, int]) -> Boxes:
-        """Filtered boxes that overlap the evidence bound, plus the boxes of the evidence
-        regions (the objects followed), merged where they overlap."""
+        """Filtered boxes (drawn around motion) that overlap the evidence bound, plus the boxes
+        of the evidence regions (the objects followed), merged where they overlap."""
         H, W = shape
         h, w = found.shape
         if allowed is not None and len(kept):
-            ranges = box_pixel_ranges(_to_full_resolution_boxes(kept.xyxy, w / W, h / H), w, h)
-            ok = np.array([allowed[r0:r1, c0:c1].any() for c0, r0, c1, r1 in ranges], bool)
-            kept = kept.select(ok)
+            kept = kept.select(self._holds(kept, allowed, shape))
         small, _ = mask_to_boxes(found, 1)
         if not len(small):
             return kept
@@ -645,7 +659,7 @@ class MonaMasker:
         all_xyxy = np.concatenate([kept.xyxy, xyxy.astype(np.float32)])
         score = np.concatenate([kept.score, np.ones(len(xyxy), np.float32)])
         all_xyxy, score = merge_boxes(all_xyxy, score, self.config.motion.merge_overlap)
-        return Boxes(all_xyxy, score, np.full(len(score), "moving-region")).clipped(W, H)
+        return Boxes(all_xyxy, score, np.full(len(score), MOTION_LABEL)).clipped(W, H)
 
     @staticmethod
     def _upsample(small: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

@@ -215,10 +215,11 @@ class GrabCutSegmenter(Segmenter):
         return seg
 
     # -- prompts -----------------------------------------------------------------------------
-    def _box_region(self, small, box_s, mm, theta, prior=None, pts_s=None):
+    def _box_region(self, small, box_s, mm, theta, prior=None, pts_s=None, whole=False):
         """Mask (small size) of one box given in small-image pixel coordinates; ``prior`` (small
         size bool, or None) the previous mask carried here, ``pts_s`` (N, 2) the dynamic points
-        in small-image pixels (or None)."""
+        in small-image pixels (or None); ``whole``: the box is an object detector's, around a
+        whole object (module docstring)."""
         h, w = small.shape[:2]
         cfg = self.config
         bw, bh = box_s[2] - box_s[0], box_s[3] - box_s[1]
@@ -260,6 +261,8 @@ class GrabCutSegmenter(Segmenter):
             seed |= disks > 0
         seed[init == cv2.GC_BGD] = False
         if seed[inner].mean() >= cfg.min_moving_frac:
+            if whole:
+                init[inner] = cv2.GC_PR_FGD
             init[seed] = cv2.GC_PR_FGD
             fallback = seed
         else:
@@ -328,10 +331,11 @@ class GrabCutSegmenter(Segmenter):
                 d = np.asarray(context.dynamic_points, np.float64).reshape(-1, 2)
                 dyn = np.stack([(d[:, 0] + 0.5) * sx - 0.5, (d[:, 1] + 0.5) * sy - 0.5], axis=1)
             order = np.argsort(-np.asarray(boxes.score))[:cfg.max_regions]
-            for b in np.asarray(boxes.xyxy, np.float64)[order]:
+            whole = ~boxes.from_motion
+            for b, object_box in zip(np.asarray(boxes.xyxy, np.float64)[order], whole[order]):
                 bs = np.array([(b[0] + 0.5) * sx - 0.5, (b[1] + 0.5) * sy - 0.5,
                                (b[2] + 0.5) * sx - 0.5, (b[3] + 0.5) * sy - 0.5])
-                acc |= self._box_region(small, bs, mm, theta, prior, dyn)
+                acc |= self._box_region(small, bs, mm, theta, prior, dyn, bool(object_box))
         else:
             ps = np.stack([(pts[:, 0] + 0.5) * sx - 0.5, (pts[:, 1] + 0.5) * sy - 0.5], axis=1)
             link = cfg.point_link_frac * np.hypot(w, h)

@@ -139,8 +139,25 @@ def test_gt_box_prompts_on_generated_scenes_measure_the_segmenter_alone():
     from eval.mask_bench import synthetic_rows
 
     kw = dict(n_frames=8, width=320, height=136)
-    oracle, = synthetic_rows(("one-large",), (0,), gt_boxes=True, **kw)
+    oracle, = synthetic_rows(("one-large",), (0,), mode="gt-boxes", **kw)
     method, = synthetic_rows(("one-large",), (0,), **kw)
     assert oracle["frames"] == method["frames"] == 8
     assert oracle["gt_area"] == pytest.approx(method["gt_area"])
     assert oracle["J"] > 0.9 and oracle["fp_area"] < 0.03
+
+
+def test_a_perfect_object_detector_through_the_method():
+    """`--modes gt-detector`: the whole method with a detector that boxes every mover and
+    nothing else, labelled as an object detector (``yolo``) labels its boxes: the paper's box
+    filter still asks for dynamic points, the segmenter starts from the whole box and the
+    motion evidence only keeps a box the filter drops while it holds an object followed.
+    Measured (8 frames, 320 x 136): one-large seed 0 J 0.95 (the method's motion boxes 0.82),
+    several seed 1 0.91 (the method finds none of its movers: 0.00)."""
+    from eval.mask_bench import synthetic_rows
+
+    kw = dict(n_frames=8, width=320, height=136)
+    for preset, seed in (("one-large", 0), ("several", 1)):
+        row, = synthetic_rows((preset,), (seed,), mode="gt-detector", **kw)
+        assert row["J"] > 0.85 and row["fp_area"] < 0.03, row
+    method, = synthetic_rows(("several",), (1,), **kw)
+    assert method["J"] < 0.5

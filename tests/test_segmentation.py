@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from mona_vo.detection import Boxes, FrameContext
+from mona_vo.detection import MOTION_LABEL, Boxes, FrameContext
 from mona_vo.segmentation import GrabCutConfig, GrabCutSegmenter
 
 H, W = 120, 256
@@ -44,3 +44,20 @@ def test_a_box_without_motion_keeps_the_object_out_to_its_rim():
     mask = _segmenter().segment(img, box)
     assert mask[30:36, 102:158].mean() > 0.9 and mask[84:90, 102:158].mean() > 0.9
     assert _iou(mask, obj) > 0.85
+
+
+def test_an_object_detectors_box_is_the_whole_object_and_a_motion_box_is_its_seeds():
+    """Seeds only on the top (red) half, as when a walker's legs move and the body barely does.
+    A box drawn around motion (``MOTION_LABEL``) may be loose: only its seeds are foreground to
+    start with, and the unseeded blue half goes. An object detector's box (any other label) is
+    around one whole object: the whole box starts as foreground and the blue half stays."""
+    img, obj = _scene()
+    motion = np.zeros((H, W), np.float32)
+    motion[32:58, 102:158] = 3.0
+    context = FrameContext(0, motion, 1.0, 1.0, np.zeros((0, 2), np.float32), 1.0)
+    xyxy = np.array([[100, 30, 159, 89]], np.float32)
+    masks = {label: _segmenter().segment(img, Boxes(xyxy, np.ones(1, np.float32),
+                                                    np.array([label])), context=context)
+             for label in (MOTION_LABEL, "person")}
+    assert masks["person"][62:88, 102:158].mean() > 0.9 and _iou(masks["person"], obj) > 0.85
+    assert masks[MOTION_LABEL][62:88, 102:158].mean() < 0.1
