@@ -3,7 +3,9 @@
 Variants: ``none`` (no masks), ``gt`` (the generator's exact moving-object masks), ``mona``
 (masks computed by MONA on the fly; their rows also give the masks' mean IoU against the true
 masks and false-positive area, as the mask bench measures them, so an ATE can be read beside the
-masks that made it). Each sequence is rendered once and shared by its variants.
+masks that made it), ``gt-detector`` (MONA with a perfect object detector,
+:class:`eval.mask_bench.TrueBoxDetector`: what an object detector back end would at best give
+the VO). Each sequence is rendered once and shared by its variants.
 ATE/RPE follow the Sintel protocol (:func:`eval.metrics.evaluate_trajectory`, Sim(3)); ATE is also
 given as a percentage of the GT path length, the unit of the issue targets.
 
@@ -53,7 +55,12 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     """One run. ``calib``: ``given`` passes the scene's true intrinsics; ``estimate`` passes
     none, as `mona-vo run` without --calib (the focal length is estimated, or guessed).
     ``gt_poses``: the true pose of each frame when it is not the scene's (repeated frames)."""
-    masks = {"none": None, "gt": list(gt_masks), "mona": "mona"}[variant]
+    masks = {"none": None, "gt": list(gt_masks), "mona": "mona", "gt-detector": "mona"}[variant]
+    detector = None
+    if variant == "gt-detector":
+        from eval.mask_bench import TrueBoxDetector
+
+        detector = TrueBoxDetector(dict(enumerate(gt_masks)))
     quality = {"mask_j": [], "mask_fp": []}
 
     def judge(out):
@@ -65,7 +72,7 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
 
     t0 = time.perf_counter()
     result = estimate_trajectory(frames, intrinsics=scene.intrinsics if calib == "given" else None,
-                                 masks=masks, config=config, on_frame=judge)
+                                 masks=masks, config=config, on_frame=judge, detector=detector)
     wall = time.perf_counter() - t0
     gt = Trajectory(np.arange(len(frames), dtype=float),
                     scene.poses() if gt_poses is None else gt_poses)
@@ -118,6 +125,9 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
     shown, but for ``stutter``, whose held frame keeps its own time's); ``overlay``: burn in
     an overlay of this kind (:func:`data_tools.overlays.add_overlay`)."""
     config = config or PipelineConfig()
+    if bars and "gt-detector" in variants:
+        # The masker sees the picture inside the bars; the true boxes are the full frame's.
+        raise EvalError("the gt-detector variant does not take bars")
     rows = []
     for preset in presets:
         for seed in seeds:
@@ -196,7 +206,7 @@ def summarize(rows: list[dict], baseline: str = "none") -> list[dict]:
 
 
 def format_row(r: dict) -> str:
-    return (f"{r['preset']:13s} seed {r['seed']:2d} {r['variant']:5s} cov {100 * r['coverage']:5.1f}%  "
+    return (f"{r['preset']:13s} seed {r['seed']:2d} {r['variant']:11s} cov {100 * r['coverage']:5.1f}%  "
             f"ATE {r['ate']:.4f} m {r['ate_pct']:7.3f}% of {r['path_m']:5.2f} m  "
             f"RPE {r['rpe_trans']:.4f} m {r['rpe_rot_deg']:.3f} deg  VO {r['vo_fps']:5.1f} fps  "
             f"masks {r['mask_ms_per_frame']:5.1f} ms/frame  low-conf {r['low_confidence']}"
@@ -213,13 +223,13 @@ def format_row(r: dict) -> str:
 def format_summary(summary: list[dict], baseline: str = "none") -> str:
     """The summary as a table: ATE % mean +- standard deviation over seeds [min, max], the paired
     difference to the baseline variant +- its standard deviation, the run-to-run spread."""
-    lines = [f"{'preset':13s} {'variant':7s} {'n':>2s} {'ATE% mean+-sd':>15s} {'[min, max]':>17s} "
+    lines = [f"{'preset':13s} {'variant':11s} {'n':>2s} {'ATE% mean+-sd':>15s} {'[min, max]':>17s} "
              f"{'vs ' + baseline + ' +-sd':>17s} {'rerun':>6s} {'RPE m':>7s} {'RPE deg':>7s} "
              f"{'VO fps':>7s} {'mask ms':>7s} {'failed':>6s}"]
     for s in summary:
         d = ("-" if s["variant"] == baseline or s["d_vs_baseline_mean"] != s["d_vs_baseline_mean"]
              else f"{s['d_vs_baseline_mean']:+.3f}+-{s['d_vs_baseline_std']:.3f}")
-        lines.append(f"{s['preset']:13s} {s['variant']:7s} {s['n']:2d} "
+        lines.append(f"{s['preset']:13s} {s['variant']:11s} {s['n']:2d} "
                      f"{s['ate_pct_mean']:7.3f}+-{s['ate_pct_std']:6.3f} "
                      f"[{s['ate_pct_min']:6.3f}, {s['ate_pct_max']:7.3f}] {d:>17s} "
                      f"{s['repeat_spread_pct']:6.3f} {s['rpe_trans_mean']:7.4f} {s['rpe_rot_mean']:7.3f} "

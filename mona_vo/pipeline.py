@@ -405,7 +405,8 @@ class _Recorder:
 def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                         config: PipelineConfig | None = None,
                         on_frame: Callable[[FrameOutput], None] | None = None,
-                        progress: Callable[[int], None] | None = None) -> RunResult:
+                        progress: Callable[[int], None] | None = None,
+                        detector=None) -> RunResult:
     """Camera trajectory of a frame stream.
 
     frames:     iterable of objects with ``index``, ``timestamp``, ``name``, ``image`` ((H, W, 3)
@@ -416,6 +417,8 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                 callable ``frame -> mask``.
     on_frame:   called with a :class:`FrameOutput` for every frame, in order.
     progress:   called with the number of frames finished so far (for a progress bar).
+    detector:   a :class:`mona_vo.detection.Detector` instance for MONA in place of the one
+                ``config.masks.detector`` names (benchmarks: a detector that reads the truth).
     """
     config = config or PipelineConfig()
     config.validate()
@@ -461,7 +464,8 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             # MONA's camera model uses the intrinsics when known, else the VO's camera.
             masker = MonaMasker(config.masks, _intrinsics_for(stream.intrinsics, frame, w, h)
                                 or camera_without_calib(stream.calibration, config, w, h),
-                                ignore=stream.overlay, **config.masker_backends())
+                                ignore=stream.overlay, detector=detector,
+                                **config.masker_backends())
         pending.append((frame, repeat))
         drain(masker.push_repeat(frame.index) if repeat else masker.push(frame.index, frame.image))
     if masker is not None:
