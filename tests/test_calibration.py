@@ -236,3 +236,12 @@ def test_vo_bench_reports_the_quality_of_the_masks_the_vo_was_given():
     assert mona["mask_fp_pct"] == pytest.approx(100 * bench["fp_area"], abs=1e-9)
     assert 0.3 < mona["mask_j"] <= 1.0
     assert np.isnan(gt["mask_j"]) and np.isnan(gt["mask_fp_pct"])
+    # The gt-detector variant: the VO on MONA masks made from the true boxes, measured the same
+    # way as the mask bench's gt-detector mode.
+    oracle = run_variant(scene, frames, masks, "gt-detector", PipelineConfig())
+    bench, = synthetic_rows(("one-large",), (0,), n_frames=16, width=320, height=136,
+                            use_intrinsics=True, mode="gt-detector")
+    assert oracle["mask_j"] == pytest.approx(bench["J"], abs=1e-9)
+    # Measured: J 0.65 against MONA's 0.54 (the car carries too few dynamic points in some
+    # frames and the paper's filter drops its box there).
+    assert oracle["mask_j"] > mona["mask_j"] + 0.05 and np.isfinite(oracle["ate"])
