@@ -13,9 +13,9 @@ Library functions return plain rows (lists of dicts); only ``python -m eval.mask
   per sequence and prompt mode ('boxes', 'points', 'raw-boxes'), and 'gt-boxes': the segmenter
   alone, prompted with the boxes of the true mask's parts (:func:`gt_box_masks`), what the
   segmentation stage reaches when detection and filter are perfect; and 'gt-detector': the whole
-  method (motion seeds, the paper's box filter, the evidence bound) with a detector that finds
-  every annotated object and nothing else, what an object detector back end (``yolo``) would at
-  best give the method.
+  method (motion seeds, the paper's box filter, the objects the evidence follows) with a
+  detector that finds every annotated object and nothing else, what an object detector back end
+  (``yolo``) would at best give the method.
 * :func:`speed_rows`: wall-clock seconds per frame of each stage (``MaskFrame.seconds``) on a
   1024 x 436 input (the real Sintel clip when present, else a generated scene; decoding and
   rendering are not timed).
@@ -122,8 +122,8 @@ class TrueBoxDetector(Detector):
     """A detector (:class:`mona_vo.detection.Detector`'s interface) that finds every annotated
     object and nothing else: the boxes of the true mask's parts of the frame
     (``FrameContext.frame_index``, looked up in ``truth``: a mapping frame index -> (H, W)
-    bool mask), labelled as an object detector labels them. The method around it (motion
-    seeds, the box filter, the evidence bound, the segmenter) is unchanged."""
+    bool mask), labelled as an object detector labels them. The masker treats its boxes as any
+    object detector's (:mod:`mona_vo.masks`, evidence)."""
 
     def __init__(self, truth):
         self.truth = truth

@@ -43,10 +43,13 @@ Per frame t (stages timed in ``MaskFrame.seconds``):
 ``evidence``        ('boxes' mode, :mod:`mona_vo.mask_evidence`) the frame's motion map and
                     strong dynamic points update a log-odds map carried along the flow; its
                     hysteresis regions (objects found and not yet stopped, followed from frame
-                    to frame) are the prior of the detector and the segmenter, their boxes are
-                    kept as prompts beside the filtered ones (a filtered box outside every
-                    region's bound is dropped), and the mask stays within the regions' grown
-                    convex hulls (no spill onto still background of similar colour).
+                    to frame) are the prior of the detector and the segmenter. With the motion
+                    detector (``Detector.draws_motion``) their boxes are kept as prompts beside
+                    the filtered ones (a filtered box outside every region's bound is dropped),
+                    and the mask stays within the regions' grown convex hulls (no spill onto
+                    still background of similar colour). With an object detector (``yolo``),
+                    whose boxes each hold a whole object, a box the filter drops in a frame
+                    stays while it overlaps an object followed, and the box bounds its mask.
 ``segmentation``    the prompts (``config.prompt``) to ``config.segmenter``.
 
 Do no harm: each :class:`MaskFrame` says whether the VO should use it (``reliable``): a mask
@@ -72,7 +75,8 @@ from mona_vo.box_filter import UNIT_RULES, BoxFilterResult, adaptive_box_filter
 from mona_vo.config import check_fields, setting
 from mona_vo.conventions import Intrinsics, working_size
 from mona_vo.detection import (DETECTORS, MOTION_LABEL, Boxes, Detector, FrameContext,
-                               MotionDetectorConfig, _to_full_resolution, box_pixel_ranges, mask_to_boxes, merge_boxes)
+                               MotionDetectorConfig, _to_full_resolution, box_pixel_ranges,
+                               mask_to_boxes, merge_boxes)
 from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, NO_MODEL, DynamicPoints,
                                     DynamicPointsConfig, DynamicPointsTracker,
                                     adaptive_threshold, classify_window, default_intrinsics,

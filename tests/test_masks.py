@@ -290,3 +290,25 @@ def test_seeded_evidence_finds_slow_movers_the_frame_threshold_misses_and_no_sta
     base = synthetic_rows(("static",), (207,), config=cfg, **kw)[0]
     grown = synthetic_rows(("static",), (207,), config=seeded, **kw)[0]
     assert grown["fp_area"] <= base["fp_area"] + 1e-3
+
+
+def test_an_object_detectors_box_stays_while_the_evidence_follows_its_object():
+    """With an object detector (here one that boxes the true mover, labelled as ``yolo`` labels
+    its boxes), a box the paper's filter drops in a frame (too few dynamic points on it there)
+    stays while the accumulated evidence still follows its object. Measured on one-large seed
+    0 (16 frames, 320 x 136): frames 8-10 lose the filter's vote and keep the car (IoU 0.95);
+    without this rule DAVIS J with a perfect detector fell from 0.653 / 0.591 to 0.542 / 0.574
+    (tuning / validation)."""
+    from data_tools.synthetic import SceneConfig, SyntheticScene
+    from eval.mask_bench import TrueBoxDetector
+
+    scene = SyntheticScene(SceneConfig(width=320, height=136, n_frames=16, preset="one-large",
+                                       seed=0))
+    truth = {i: scene.render(i).mask for i in range(len(scene))}
+    out = list(compute_masks(((i, scene.render(i).image) for i in range(len(scene))),
+                             MaskConfig(), detector=TrueBoxDetector(truth)))
+    held = [o for o in out if o.box_filter.keep.sum() == 0 and len(o.kept_boxes)]
+    assert len(held) >= 2
+    for o in held:
+        gt = truth[o.index]
+        assert np.count_nonzero(o.mask & gt) / np.count_nonzero(o.mask | gt) > 0.9
