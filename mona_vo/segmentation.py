@@ -260,14 +260,15 @@ class GrabCutSegmenter(Segmenter):
                 cv2.circle(disks, (int(round(x - c0)), int(round(y - r0))), rad, 1, -1)
             seed |= disks > 0
         seed[init == cv2.GC_BGD] = False
-        if seed[inner].mean() >= cfg.min_moving_frac:
-            if whole:
-                init[inner] = cv2.GC_PR_FGD
+        moving = seed[inner].mean() >= cfg.min_moving_frac
+        if whole or not moving:
+            # A box around one object (or one in which nothing moves): its object by colour,
+            # from the whole box.
+            init[inner] = cv2.GC_PR_FGD
+        if moving:
             init[seed] = cv2.GC_PR_FGD
             fallback = seed
         else:
-            # Nothing moves in the box: its object by colour, from the whole box.
-            init[inner] = cv2.GC_PR_FGD
             fallback = np.zeros(init.shape, bool)
             fallback[inner] = True
         seg = self._cut(small, init, (c0, r0, c1, r1), fallback)
