@@ -164,6 +164,9 @@ class FrameContext:
                     mask carried into this frame along the flow, or None.
     dynamic_residual: (M,) float32 residual motion of each dynamic point, pixels per frame
                     (:attr:`mona_vo.dynamic_points.DynamicPoints.residual`), or None.
+    followed:       (h, w) bool, analysis resolution: the objects the accumulated evidence
+                    follows in this frame (:func:`mona_vo.mask_evidence.regions`), or None when
+                    no evidence is accumulated.
     """
 
     frame_index: int
@@ -175,6 +178,7 @@ class FrameContext:
     tracked_points: np.ndarray | None = None
     prior_mask: np.ndarray | None = None
     dynamic_residual: np.ndarray | None = None
+    followed: np.ndarray | None = None
 
 
 class Detector(ABC):

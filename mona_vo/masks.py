@@ -534,7 +534,7 @@ class MonaMasker:
             prior = found if prior is None or allowed is None else (found | (prior & allowed))
         t1b = time.perf_counter()
         context = FrameContext(self._index[p], mmap, theta, m_t, dyn_xy, motion_theta, dyn.points,
-                               prior, dyn.residual[dyn.is_dynamic])
+                               prior, dyn.residual[dyn.is_dynamic], found)
         boxes = Boxes.empty() if cfg.prompt == "points" else self.detector.detect(image, context)
         t2 = time.perf_counter()
         filt = None

@@ -61,3 +61,29 @@ def test_an_object_detectors_box_is_the_whole_object_and_a_motion_box_is_its_see
              for label in (MOTION_LABEL, "person")}
     assert masks["person"][62:88, 102:158].mean() > 0.9 and _iou(masks["person"], obj) > 0.85
     assert masks[MOTION_LABEL][62:88, 102:158].mean() < 0.1
+
+
+def test_a_carried_mask_that_spilt_is_not_restored_beyond_the_objects_followed():
+    """The previous mask, carried here, spilt onto the background: a blob four times the
+    object. GrabCut cuts the object out of it and so keeps less than ``min_keep_frac`` of the
+    seeds. What it must not drop is the evidence -- this frame's motion and the objects the
+    accumulated evidence follows -- not the spill: restoring the whole carried blob kept the
+    spill in every later frame (DAVIS parkour)."""
+    img, obj = _scene()
+    img[30:90, 100:160] = (200, 30, 30)                 # one red object
+    motion = np.zeros((H, W), np.float32)
+    motion[40:80, 110:150] = 3.0                        # its middle moves in this frame
+    blob = np.zeros((H, W), bool)
+    blob[5:115, 50:210] = True                          # the carried mask and its spill
+    followed = cv2.dilate(obj.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    box = Boxes(np.array([[50, 5, 209, 114]], np.float32), np.ones(1, np.float32),
+                np.array([MOTION_LABEL]))
+
+    def segment(followed):
+        context = FrameContext(0, motion, 1.0, 1.0, np.zeros((0, 2), np.float32), 1.0,
+                               prior_mask=blob, followed=followed)
+        return _segmenter().segment(img, box, context=context)
+
+    assert _iou(segment(followed), obj) > 0.85
+    # Without accumulated evidence the carried mask is all there is to go on: it stays.
+    assert segment(None)[blob].mean() > 0.9
