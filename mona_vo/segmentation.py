@@ -189,6 +189,13 @@ class GrabCutSegmenter(Segmenter):
             mm = cv2.resize(mm, (w, h), interpolation=cv2.INTER_LINEAR)
         return mm
 
+    @staticmethod
+    def _at_size(mask: np.ndarray | None, w: int, h: int) -> np.ndarray | None:
+        """A bool mask of the analysis resolution at the segmentation's (w, h), or None."""
+        if mask is None or mask.shape == (h, w):
+            return mask
+        return cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+
     def _cut(self, small: np.ndarray, init: np.ndarray, roi: tuple[int, int, int, int],
              fallback: np.ndarray) -> np.ndarray:
         """GrabCut of the ``roi`` (c0, r0, c1, r1) of ``small`` with the initial labels ``init``
@@ -241,8 +248,6 @@ class GrabCutSegmenter(Segmenter):
         init[[0, -1], :] = cv2.GC_BGD
         init[:, [0, -1]] = cv2.GC_BGD
         inner = (slice(q0 - r0, q1 - r0), slice(b0 - c0, b1 - c0))
-        # Foreground seeds: what moves in the box, the previous mask carried here, disks on the
-        # dynamic points.
         # This frame's evidence of motion: what moves in the box, disks on the dynamic points.
         now = np.zeros((r1 - r0, c1 - c0), bool)
         if mm is not None:
@@ -336,22 +341,12 @@ class GrabCutSegmenter(Segmenter):
         theta = float(context.motion_theta) if context is not None else 0.0
         acc = np.zeros((h, w), bool)
         if has_boxes:
-            prior = None
-            if context is not None and context.prior_mask is not None:
-                prior = context.prior_mask
-                if prior.shape != (h, w):
-                    prior = cv2.resize(prior.astype(np.uint8), (w, h),
-                                       interpolation=cv2.INTER_NEAREST) > 0
+            prior = self._at_size(context.prior_mask if context is not None else None, w, h)
+            followed = self._at_size(context.followed if context is not None else None, w, h)
             dyn = None
             if context is not None and len(context.dynamic_points):
                 d = np.asarray(context.dynamic_points, np.float64).reshape(-1, 2)
                 dyn = np.stack([(d[:, 0] + 0.5) * sx - 0.5, (d[:, 1] + 0.5) * sy - 0.5], axis=1)
-            followed = None
-            if context is not None and context.followed is not None:
-                followed = context.followed
-                if followed.shape != (h, w):
-                    followed = cv2.resize(followed.astype(np.uint8), (w, h),
-                                          interpolation=cv2.INTER_NEAREST) > 0
             order = np.argsort(-np.asarray(boxes.score))[:cfg.max_regions]
             whole = ~boxes.from_motion
             for b, object_box in zip(np.asarray(boxes.xyxy, np.float64)[order], whole[order]):
