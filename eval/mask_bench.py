@@ -29,7 +29,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from eval.mask_metrics import boundary_f, evaluate_mask_sequence, region_similarity
+from eval.mask_metrics import boundary_f, error_parts, evaluate_mask_sequence, region_similarity
 from mona_vo.detection import Boxes, Detector, mask_to_boxes
 from mona_vo.masks import STAGES, MaskConfig, compute_masks
 
@@ -164,8 +164,10 @@ def davis_rows(root: str | Path | None = None,
                modes: Sequence[str] = ("boxes",),
                config: MaskConfig | None = None, max_frames: int | None = None,
                calib: str = "estimate", pipeline=None) -> list[dict]:
-    """One row per (sequence, prompt mode): J and F means over all frames, the sequence's
-    split ('tune' or 'validate', by the board's DAVIS split) and the mean seconds per frame.
+    """One row per (sequence, prompt mode): J and F means over all frames, what the error is
+    made of (:func:`eval.mask_metrics.error_parts`: ``found``, ``spill`` and ``apart`` as shares
+    of the true masks' pixels), the sequence's split ('tune' or 'validate', by the board's DAVIS
+    split) and the mean seconds per frame.
     ``root``: one DAVIS folder holding every sequence; None looks each one up in the shared
     data (:func:`davis_root_of`). ``calib``: ``estimate`` (default) gives the masker
     the focal length `mona-vo masks` and `mona-vo run` estimate from the first 40 frames
@@ -207,10 +209,12 @@ def davis_rows(root: str | Path | None = None,
                 gts = [m for m, _ in zip(ds.masks(), preds)]
             sec = (time.perf_counter() - t0) / max(len(preds), 1)
             metrics = evaluate_mask_sequence(preds, gts)
+            parts = error_parts(preds, gts)
             split = "tune" if seq in DAVIS_TUNE else "validate" if seq in DAVIS_VALIDATE else "-"
             rows.append({"sequence": seq, "split": split, "prompt": mode,
                          "frames": metrics.n_frames, "J": metrics.J_mean, "F": metrics.F_mean,
-                         "s_per_frame": sec, **extra})
+                         "found": parts["found"], "spill": parts["spill"],
+                         "apart": parts["apart"], "s_per_frame": sec, **extra})
     return rows
 
 

@@ -12,7 +12,8 @@ import pytest
 from scipy import ndimage
 
 from eval.mask_metrics import (MaskMetrics, boundary_f, boundary_map, boundary_tolerance_px,
-                               evaluate_mask_folders, evaluate_mask_sequence, region_similarity)
+                               error_parts, evaluate_mask_folders, evaluate_mask_sequence,
+                               region_similarity)
 from mona_vo.errors import EvalError, InputError
 
 DAVIS = Path("/work/shared/data/davis2016/Annotations/480p")
@@ -95,6 +96,19 @@ def test_diagonal_shift_reproduces_davis_value_by_hand():
     assert boundary_f(pred, gt) == pytest.approx(15 / 16)
     # A 2-px tolerance reaches the diagonal neighbours.
     assert boundary_f(pred, gt, bound_th=2) == 1.0
+
+
+def test_error_parts_tell_spill_around_the_object_from_false_regions_apart():
+    gt = _square()                                   # 400 true pixels, rows/cols 10-29
+    pred = _square(top=10, left=10, size=25)         # the object and 225 pixels of spill
+    pred[50:60, 50:60] = True                        # and a false region apart, 100 pixels
+    pred[10:14, 10:30] = False                       # 80 true pixels missed
+    parts = error_parts([pred, np.zeros_like(gt)], [gt, gt])
+    assert parts["found"] == pytest.approx(320 / 800)
+    assert parts["missed"] == pytest.approx(480 / 800)
+    assert parts["spill"] == pytest.approx(225 / 800)
+    assert parts["apart"] == pytest.approx(100 / 800)
+    assert np.isnan(error_parts([pred], [np.zeros_like(gt)])["spill"])
 
 
 def test_invalid_inputs_raise_eval_error():
