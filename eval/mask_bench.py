@@ -159,6 +159,13 @@ def davis_root_of(sequence: str, data: str | Path | None = None) -> Path:
     return data / DAVIS_ROOTS[0]
 
 
+def _noting_truth(frames, masks, truth: dict):
+    """(index, image) of each frame, its true mask put in ``truth`` under its index first."""
+    for frame, mask in zip(frames, masks):
+        truth[frame.index] = mask
+        yield frame.index, frame.image
+
+
 def davis_rows(root: str | Path | None = None,
                sequences: Sequence[str] = DAVIS_TUNE + DAVIS_VALIDATE,
                modes: Sequence[str] = ("boxes",),
@@ -200,8 +207,10 @@ def davis_rows(root: str | Path | None = None,
                 frames = ((f.index, f.image) for f in ds.frames(max_frames=max_frames))
                 backends, prompt = {}, mode
                 if mode == "gt-detector":
-                    truth = {f.index: m for f, m in zip(ds.frames(max_frames=max_frames),
-                                                        ds.masks())}
+                    # The truth is noted as each frame is read (the detector looks a frame up
+                    # only after it was pushed), so the frames are decoded once.
+                    truth = {}
+                    frames = _noting_truth(ds.frames(max_frames=max_frames), ds.masks(), truth)
                     backends, prompt = {"detector": TrueBoxDetector(truth)}, "boxes"
                 preds = [out.mask for out in
                          compute_masks(frames, dataclasses.replace(config, prompt=prompt),

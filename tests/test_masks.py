@@ -304,8 +304,9 @@ def test_an_object_detectors_box_stays_while_the_evidence_follows_its_object():
 
     scene = SyntheticScene(SceneConfig(width=320, height=136, n_frames=16, preset="one-large",
                                        seed=0))
-    truth = {i: scene.render(i).mask for i in range(len(scene))}
-    out = list(compute_masks(((i, scene.render(i).image) for i in range(len(scene))),
+    rendered = [scene.render(i) for i in range(len(scene))]
+    truth = {i: f.mask for i, f in enumerate(rendered)}
+    out = list(compute_masks(((i, f.image) for i, f in enumerate(rendered)),
                              MaskConfig(), detector=TrueBoxDetector(truth)))
     held = [o for o in out if o.box_filter.keep.sum() == 0 and len(o.kept_boxes)]
     assert len(held) >= 2
