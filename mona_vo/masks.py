@@ -392,8 +392,10 @@ class MonaMasker:
         # ends there (then the next window never gets a second frame).
         self._reserve = None if final else results[-1]
 
-    def _motion_map(self, p: int, last: int, model: str | None) -> np.ndarray | None:
-        """Residual motion of frame p, full-resolution pixels per frame, analysis resolution."""
+    def _motion_map(self, p: int, last: int, model: str | None,
+                    small: np.ndarray) -> np.ndarray | None:
+        """Residual motion of frame p, full-resolution pixels per frame, analysis resolution
+        (``small``: frame p's grey image at that resolution)."""
         cfg = self.config
         W, _ = self._size
         w, h = self._analysis_size()
@@ -414,7 +416,6 @@ class MonaMasker:
             m_pair = self._m[p]
         else:
             return None
-        small = cv2.resize(to_gray(self._images[p]), (w, h), interpolation=cv2.INTER_AREA)
         score = texture_score(small, cfg.dynamic_points.anchor_score)
         out = self._residual(p, score, cum, valid, gap, m_pair, model)
         if gap > 1 and not valid.all():
@@ -496,7 +497,8 @@ class MonaMasker:
                 self._m.get(p, self._m.get(p - 1, 0.0)), self.intrinsics,
                 cfg.dynamic_points.homography_min_turn_deg):
             model = EPIPOLAR
-        mmap = self._motion_map(p, last, model)
+        grey = cv2.resize(to_gray(image), self._analysis_size(), interpolation=cv2.INTER_AREA)
+        mmap = self._motion_map(p, last, model, grey)
         if self._ignore is not None:
             mmap, dyn = self._without_ignored(mmap, dyn)
         if mmap is not None and cfg.motion_memory > 0 and self._prev_map is not None:
@@ -519,11 +521,7 @@ class MonaMasker:
         use_evidence = cfg.evidence.enabled and cfg.prompt == "boxes" and mmap is not None
         logodds = found = allowed = None
         if use_evidence:
-            texture = None
-            if cfg.evidence.texture_ref > 0:
-                h, w = mmap.shape
-                small = cv2.resize(to_gray(image), (w, h), interpolation=cv2.INTER_AREA)
-                texture = texture_score(small, "min_eigen")
+            texture = texture_score(grey, "min_eigen") if cfg.evidence.texture_ref > 0 else None
             logodds = self._accumulate(mmap, motion_theta, spread, dyn, texture)
             follow = None
             if self._found is not None and self._prev_flow is not None and self._found.any():
