@@ -393,12 +393,12 @@ class MonaMasker:
         self._reserve = None if final else results[-1]
 
     def _motion_map(self, p: int, last: int, model: str | None,
-                    small: np.ndarray) -> np.ndarray | None:
+                    grey: np.ndarray) -> np.ndarray | None:
         """Residual motion of frame p, full-resolution pixels per frame, analysis resolution
-        (``small``: frame p's grey image at that resolution)."""
+        (``grey``: frame p's grey image at that resolution)."""
         cfg = self.config
         W, _ = self._size
-        w, h = self._analysis_size()
+        w, _ = self._analysis_size()
         scale = w / W
         if p < last:
             gap = min(cfg.motion_gap, last - p)
@@ -416,7 +416,7 @@ class MonaMasker:
             m_pair = self._m[p]
         else:
             return None
-        score = texture_score(small, cfg.dynamic_points.anchor_score)
+        score = texture_score(grey, cfg.dynamic_points.anchor_score)
         out = self._residual(p, score, cum, valid, gap, m_pair, model)
         if gap > 1 and not valid.all():
             # Pixels whose chain left the image: the single-step flow still sees them.
