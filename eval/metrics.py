@@ -14,7 +14,9 @@ ParticleSfM's scripts) and converts mona-vo's arrays to evo's objects and back:
   estimate. That is what ``evo_rpe ... -a -s`` does: ``evo.main_rpe.rpe`` aligns the whole
   estimate with ``traj_est.align(traj_ref, correct_scale)`` before ``metrics.RPE``. A rigid
   alignment does not change an RPE, the Sim(3) scale does: after it the relative translations of
-  the estimate are in GT units (metres).
+  the estimate are in GT units (metres);
+- window scales (mona-vo's, not evo's; on request): the aligned estimate's path length over the
+  GT's per run of N matched steps, which places a monocular scale collapse in time.
 
 Only ``evo.core`` is imported (``evo.tools`` pulls rosbags and matplotlib), lazily inside the
 functions so that importing this module stays cheap. Nothing here touches files.
@@ -145,6 +147,7 @@ class TrajectoryMetrics:
     path_length: float  # GT path length over the matched poses, GT units
     ate_percent_of_path: float  # 100 * ate / path_length; NaN when the GT does not move
     alignment: Alignment  # 'sim3' | 'se3' | 'none'
+    window_scales: tuple = ()  # :func:`window_scales` rows, when asked for (scale_window > 0)
 
     def to_dict(self) -> dict:
         """JSON-able dict: Python floats and ints, the alignment as its string, NaN as None."""
@@ -160,6 +163,8 @@ class TrajectoryMetrics:
             "path_length": num(self.path_length),
             "ate_percent_of_path": num(self.ate_percent_of_path),
             "alignment": Alignment(self.alignment).value,
+            **({"window_scales": [dict(w) for w in self.window_scales]}
+               if self.window_scales else {}),
         }
 
 
@@ -170,6 +175,29 @@ def path_length(positions: np.ndarray) -> float:
     if p.ndim != 2 or p.shape[0] < 2:
         return 0.0
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def window_scales(gt_xyz: np.ndarray, est_xyz: np.ndarray, window: int) -> list[dict]:
+    """Where a monocular estimate's scale drifts: for consecutive runs of ``window`` steps
+    between matched poses ((N, 3) GT and aligned estimate positions, same order), the estimate's
+    path length over the GT's. After a Sim(3) alignment 1 is the run's own scale; a value near 0
+    means the estimate stopped translating while the camera moved (a scale collapse), a large
+    one a jump. One global ATE cannot say where either happened.
+
+    Rows: ``first`` and ``last`` (matched-pose indices, each window sharing its ends with the
+    next), ``gt_path`` and ``est_path`` (GT units) and ``ratio`` (None where the GT did not
+    move). The last window may be shorter."""
+    if window < 1:
+        raise EvalError(f"the scale window must be at least 1 step, got {window}")
+    g = np.asarray(gt_xyz, np.float64)
+    e = np.asarray(est_xyz, np.float64)
+    rows = []
+    for a in range(0, len(g) - 1, window):
+        b = min(a + window, len(g) - 1)
+        gp, ep = path_length(g[a:b + 1]), path_length(e[a:b + 1])
+        rows.append({"first": a, "last": b, "gt_path": gp, "est_path": ep,
+                     "ratio": ep / gp if gp > 0 else None})
+    return rows
 
 
 def _to_evo(traj: Trajectory, name: str):
@@ -209,7 +237,8 @@ def _match(gt_evo, est_evo, *, associate: bool, max_diff: float):
 
 
 def evaluate_trajectory(gt: Trajectory, est: Trajectory, *, align: Alignment | str = "sim3",
-                        max_diff: float = 0.01, associate: bool = True) -> TrajectoryMetrics:
+                        max_diff: float = 0.01, associate: bool = True,
+                        scale_window: int = 0) -> TrajectoryMetrics:
     """ATE and RPE of ``est`` against ``gt`` with the Sintel protocol, equal to evo's numbers.
 
     Args:
@@ -220,6 +249,8 @@ def evaluate_trajectory(gt: Trajectory, est: Trajectory, *, align: Alignment | s
             (seconds; frames for Sintel/KITTI numbering). evo's default 0.01.
         associate: True associates by nearest timestamp (evo's ``associate_trajectories``);
             False pairs pose i with pose i and needs equal lengths (KITTI pose files).
+        scale_window: > 0 adds :func:`window_scales` over this many steps of the aligned
+            estimate (``TrajectoryMetrics.window_scales``).
 
     Returns:
         :class:`TrajectoryMetrics`. ``gt`` and ``est`` are not modified.
@@ -279,7 +310,10 @@ def evaluate_trajectory(gt: Trajectory, est: Trajectory, *, align: Alignment | s
     return TrajectoryMetrics(ate=ate, rpe_trans=rpe[PoseRelation.translation_part],
                              rpe_rot_deg=rpe[PoseRelation.rotation_angle_deg], n_matched=int(n),
                              scale=scale, path_length=length, ate_percent_of_path=percent,
-                             alignment=alignment)
+                             alignment=alignment,
+                             window_scales=tuple(window_scales(
+                                 gt_m.positions_xyz, est_m.positions_xyz, scale_window))
+                             if scale_window else ())
 
 
 @dataclass(frozen=True)

@@ -203,6 +203,10 @@ def build_parser() -> argparse.ArgumentParser:
     et.add_argument("--frames", metavar="A:B",
                     help="score only the estimate's poses A to B-1 (rows of the file, from 0), "
                          "aligned alone: e.g. a tuning and a validation part of one run")
+    et.add_argument("--scale-window", type=int, default=0, metavar="N",
+                    help="add window_scales: per N steps of the aligned estimate, its path "
+                         "length over the GT's (1 = the run's scale; near 0 = it stopped "
+                         "translating, a scale collapse)")
     et.set_defaults(func=_cmd_eval_traj)
     em = _sub(esub, "masks", help="DAVIS region J and boundary F of predicted masks, printed as JSON")
     em.add_argument("--pred", required=True, help="folder of predicted mask PNGs")
@@ -463,7 +467,8 @@ def _cmd_eval_traj(args) -> int:
         t, T = read_tum_trajectory(args.est)
         part = _frame_range(args.frames, len(t))
         est = Trajectory(t[part], T[part])
-        m = evaluate_trajectory(gt, est, align=args.align, max_diff=args.max_diff)
+        m = evaluate_trajectory(gt, est, align=args.align, max_diff=args.max_diff,
+                                scale_window=args.scale_window)
     else:
         from data_tools.kitti import read_kitti_poses
 
@@ -474,10 +479,12 @@ def _cmd_eval_traj(args) -> int:
                               "matched by line)")
         gt = Trajectory.from_poses(gt_poses[part])
         est = Trajectory.from_poses(est_poses[part])
-        m = evaluate_trajectory(gt, est, align=args.align, associate=False)
+        m = evaluate_trajectory(gt, est, align=args.align, associate=False,
+                                scale_window=args.scale_window)
     d = m.to_dict()
-    print(json.dumps({k: d[k] for k in ("ate", "rpe_trans", "rpe_rot_deg", "n_matched", "scale",
-                                        "path_length", "ate_percent_of_path", "alignment")}))
+    keys = ("ate", "rpe_trans", "rpe_rot_deg", "n_matched", "scale", "path_length",
+            "ate_percent_of_path", "alignment", "window_scales")
+    print(json.dumps({k: d[k] for k in keys if k in d}))
     return 0
 
 

@@ -85,6 +85,16 @@ def test_eval_traj_prints_the_metrics_of_the_library(mona_vo_exe, small_scene, t
     want = evaluate_trajectory(Trajectory(*read_tum_trajectory(folder / "groundtruth.txt")),
                                Trajectory(t[2:9], T[2:9]))
     assert got["n_matched"] == 7 and got["ate"] == pytest.approx(want.ate, abs=1e-12)
+    # --scale-window N adds the estimate's scale per N steps, as the library computes it.
+    got = json.loads(cli(mona_vo_exe, "eval", "traj", "--gt", folder / "groundtruth.txt",
+                         "--est", out / "trajectory.txt", "--scale-window", "4").stdout)
+    want = evaluate_trajectory(Trajectory(*read_tum_trajectory(folder / "groundtruth.txt")),
+                               Trajectory(t, T), scale_window=4)
+    assert got["window_scales"] == [dict(r) for r in want.window_scales]
+    assert len(got["window_scales"]) == -(-(len(scene) - 1) // 4)
+    bad = cli(mona_vo_exe, "eval", "traj", "--gt", folder / "groundtruth.txt", "--est",
+              out / "trajectory.txt", "--scale-window", "-2", ok=False)
+    assert bad.returncode != 0 and "scale window" in bad.stderr and "Traceback" not in bad.stderr
     bad = cli(mona_vo_exe, "eval", "traj", "--gt", folder / "groundtruth.txt", "--est",
               out / "trajectory.txt", "--frames", "5:6", ok=False)
     assert bad.returncode != 0 and "--frames" in bad.stderr and "Traceback" not in bad.stderr

@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from eval.metrics import Alignment, Trajectory, TrajectoryMetrics, evaluate_trajectory, path_length
+from eval.metrics import (Alignment, Trajectory, TrajectoryMetrics, evaluate_trajectory, path_length,
+                          window_scales)
 from mona_vo.conventions import make_pose, pose_from_tum_row
 from mona_vo.errors import EvalError
 
@@ -313,6 +314,35 @@ def test_collinear_positions_make_alignment_fail_with_eval_error():
     with pytest.raises(EvalError, match="collinear"):
         evaluate_trajectory(straight, straight, align="sim3")
     assert evaluate_trajectory(straight, straight, align="none").ate == 0.0
+
+
+def test_window_scales_show_where_a_scale_collapsed():
+    # After pose 30 the estimate keeps only 5 % of each step (a monocular VO whose scale
+    # collapsed): the global ATE says little about where, the windows say exactly.
+    gt = _helix(n=60)
+    poses = gt.poses_T_world_cam.copy()
+    c = poses[30, :3, 3].copy()
+    poses[31:, :3, 3] = c + 0.05 * (poses[31:, :3, 3] - c)
+    est = _apply_sim3(Trajectory(gt.timestamps, poses), np.eye(3), np.array([1.0, 2.0, 0.0]), 3.0)
+    got = evaluate_trajectory(gt, est, align="sim3", scale_window=10)
+    rows = got.window_scales
+    assert [(r["first"], r["last"]) for r in rows] == [(0, 10), (10, 20), (20, 30), (30, 40),
+                                                       (40, 50), (50, 59)]
+    before = [r["ratio"] for r in rows[:3]]
+    after = [r["ratio"] for r in rows[3:]]
+    assert max(before) == pytest.approx(min(before), rel=1e-9)   # one similarity: one ratio
+    for r in after:
+        assert r == pytest.approx(0.05 * before[0], rel=1e-9)
+    assert sum(r["gt_path"] for r in rows) == pytest.approx(got.path_length, rel=1e-12)
+    json.dumps(got.to_dict()["window_scales"], allow_nan=False)
+    # The same run with an unbroken scale: every window at 1 after the alignment.
+    same = evaluate_trajectory(gt, _apply_sim3(gt, np.eye(3), np.zeros(3), 3.0), scale_window=25)
+    assert all(r["ratio"] == pytest.approx(1.0, rel=1e-9) for r in same.window_scales)
+    assert "window_scales" not in evaluate_trajectory(gt, est).to_dict()
+    # A GT that stands still in a window has no ratio there.
+    assert window_scales(np.zeros((3, 3)), np.ones((3, 3)), 5)[0]["ratio"] is None
+    with pytest.raises(EvalError, match="scale window"):
+        evaluate_trajectory(gt, est, scale_window=-1)
 
 
 def test_path_length_and_to_dict_are_plain_numbers():
