@@ -204,18 +204,21 @@ def davis_rows(root: str | Path | None = None,
                 preds = gt_box_masks(images, gts, config,
                                      pipeline.device if pipeline is not None else "cpu")
             else:
-                frames = ((f.index, f.image) for f in ds.frames(max_frames=max_frames))
-                backends, prompt = {}, mode
+                truth = None
                 if mode == "gt-detector":
                     # The truth is noted as each frame is read (the detector looks a frame up
-                    # only after it was pushed), so the frames are decoded once.
+                    # only after it was pushed), so frames and true masks are decoded once.
                     truth = {}
                     frames = _noting_truth(ds.frames(max_frames=max_frames), ds.masks(), truth)
                     backends, prompt = {"detector": TrueBoxDetector(truth)}, "boxes"
+                else:
+                    frames = ((f.index, f.image) for f in ds.frames(max_frames=max_frames))
+                    backends, prompt = {}, mode
                 preds = [out.mask for out in
                          compute_masks(frames, dataclasses.replace(config, prompt=prompt),
                                        intrinsics, **backends)]
-                gts = [m for m, _ in zip(ds.masks(), preds)]
+                gts = (list(truth.values()) if truth is not None
+                       else [m for m, _ in zip(ds.masks(), preds)])
             sec = (time.perf_counter() - t0) / max(len(preds), 1)
             metrics = evaluate_mask_sequence(preds, gts)
             parts = error_parts(preds, gts)
