@@ -233,7 +233,9 @@ def davis_rows(root: str | Path | None = None,
 def speed_rows(n_frames: int = 25, config: MaskConfig | None = None,
                sintel_dir: str | Path | None = None) -> list[dict]:
     """Seconds per frame of each stage, and in total, at 1024 x 436: one row per stage with the
-    mean and median over frames (frames decoded or rendered before timing)."""
+    mean and median over frames (frames decoded or rendered before timing). With
+    ``segment_async`` the segmentation overlaps the next frame's analysis, so the wall clock per
+    frame, the row the target is about, is below the sum of the stages."""
     config = config or MaskConfig()
     folder = Path(sintel_dir) if sintel_dir is not None else \
         SHARED_DATA / "sintel_clip_alley" / "training" / "clean" / "alley_1"

@@ -3,9 +3,10 @@
 :class:`MonaMasker` is fed one frame at a time (``push``) and returns the masks that became
 ready; ``flush`` returns the rest at the end of the input. Every input frame gets exactly one
 :class:`MaskFrame`, in input order, at most ``lag`` frames after it was pushed
-(``lag = max(dynamic_points.window - 1, motion_gap)``): a frame's dynamic points need the rest of
-its track window, and its motion map looks ``motion_gap`` frames ahead. Only those frames'
-images, flows and track windows are held, so memory does not grow with the input length.
+(``lag = max(dynamic_points.window - 1, motion_gap)``, plus one with ``segment_async``): a frame's
+dynamic points need the rest of its track window, and its motion map looks ``motion_gap`` frames
+ahead. Only those frames' images, flows and track windows are held, so memory does not grow with
+the input length.
 
 Per frame t (stages timed in ``MaskFrame.seconds``):
 
@@ -50,7 +51,13 @@ Per frame t (stages timed in ``MaskFrame.seconds``):
                     still background of similar colour). With an object detector (``yolo``),
                     whose boxes each hold a whole object, a box the filter drops in a frame
                     stays while it overlaps an object followed, and the box bounds its mask.
-``segmentation``    the prompts (``config.prompt``) to ``config.segmenter``.
+``segmentation``    the prompts (``config.prompt``) to ``config.segmenter``. With
+                    ``segment_async`` it runs on a worker thread while the caller goes on
+                    (the next frame's flow, tracks, motion map and evidence; the VO's step on
+                    the frame before):
+                    only the next frame's prompts need this frame's mask (their prior), so they
+                    wait for it there, and the output is the same. A frame's mask then arrives
+                    one push later.
 
 Do no harm: each :class:`MaskFrame` says whether the VO should use it (``reliable``): a mask
 covering more than ``vo_max_coverage`` of the frame, or one whose IoU with the previous mask
@@ -65,8 +72,9 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator
+from typing import Iterable, Iterator, NamedTuple
 
 import cv2
 import numpy as np
@@ -144,6 +152,8 @@ class MaskConfig:
     vo_min_stability: float = setting(0.3, ge=0, le=1)  # nor one whose IoU with the previous
                                             # mask, carried here by the flow, is below this
                                             # (flicker; a first mask after none passes)
+    segment_async: bool = setting(True)     # segment on a worker thread, beside the next
+                                            # frame's analysis (same masks; module docstring)
     dynamic_points: DynamicPointsConfig = field(default_factory=DynamicPointsConfig)  # module 1
     dis: DISFlowConfig = field(default_factory=DISFlowConfig)            # 'dis' flow settings
     motion: MotionDetectorConfig = field(default_factory=MotionDetectorConfig)  # 'motion' detector
@@ -161,7 +171,7 @@ class MaskConfig:
     @property
     def lag(self) -> int:
         """Frames a mask waits for after its frame was pushed (at most)."""
-        return max(self.dynamic_points.window - 1, self.motion_gap)
+        return max(self.dynamic_points.window - 1, self.motion_gap) + int(self.segment_async)
 
 
 @dataclass(frozen=True, eq=False)
@@ -277,6 +287,8 @@ class MonaMasker:
         self._repeats: dict[int, list[int]] = {}        # position -> indices of the frames that
                                                         # repeat it (push_repeat), until emitted
         self._last_out: MaskFrame | None = None         # the last mask emitted
+        self._pending: tuple | None = None              # the frame being segmented (_emit)
+        self._pool: ThreadPoolExecutor | None = None    # its worker (segment_async)
         # Pixels that are no part of the scene (a burned-in overlay painted over,
         # mona_vo.overlays): the painting changes with the scene around it but does not move
         # as it does, so no motion evidence, no dynamic point and no mask there.
@@ -337,7 +349,7 @@ class MonaMasker:
         if self._n == 0:
             raise InputError(f"frame {frame_index}: a repeat needs a frame before it")
         source = self._n - 1
-        if source < self._next_out:     # already emitted (only after a flush)
+        if source < self._next_out and self._pending is None:   # already emitted (a flush)
             return [self._copy_for(self._last_out, frame_index)]
         self._repeats.setdefault(source, []).append(int(frame_index))
         return []
@@ -362,6 +374,9 @@ class MonaMasker:
             self._dyn[last] = self._reserve
         out = self._emit_ready(final=True)
         self._reserve = None
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
         return out
 
     # ------------------------------------------------------------------ stages
@@ -476,13 +491,17 @@ class MonaMasker:
                 break
             if not final and p + self.config.motion_gap > last:
                 break
-            self._last_out = self._emit(p, last)
-            out.append(self._last_out)
-            out.extend(self._copy_for(self._last_out, i) for i in self._repeats.pop(p, ()))
+            analysis = self._analyse(p, last)
+            out += self._resolve()
+            self._emit(analysis)
             self._next_out += 1
+        if final or not self.config.segment_async:
+            out += self._resolve()
         return out
 
-    def _emit(self, p: int, last: int) -> MaskFrame:
+    def _analyse(self, p: int, last: int) -> _Analysis:
+        """Frame ``p``'s motion map and accumulated evidence: they need no earlier frame's mask,
+        so with ``segment_async`` this runs while the frame before is still being segmented."""
         cfg = self.config
         sec = self._seconds.pop(p)
         image = self._images[p]
@@ -503,7 +522,6 @@ class MonaMasker:
             mmap, dyn = self._without_ignored(mmap, dyn)
         if mmap is not None and cfg.motion_memory > 0 and self._prev_map is not None:
             mmap = np.maximum(mmap, cfg.motion_memory * self._carry_forward(self._prev_map))
-        t1 = time.perf_counter()
         m_t = self._m.get(p, self._m.get(p - 1, 0.0))
         theta = adaptive_threshold(m_t, cfg.dynamic_points.alpha, cfg.dynamic_points.theta_min_px)
         theta = max(theta, dyn.theta_t)
@@ -512,11 +530,6 @@ class MonaMasker:
         if mmap is not None and mmap.any():
             spread = mask_evidence.motion_spread(mmap)
             motion_theta = max(theta, cfg.dynamic_points.noise_factor * spread)
-        dyn_xy = dyn.dynamic_points
-        carried_prev = None
-        if self._prev_small is not None and self._prev_flow is not None:
-            carried_prev = self._carry_prior()
-        prior = carried_prev if cfg.mask_prior and cfg.prompt != "points" else None
         t_ev = time.perf_counter()
         use_evidence = cfg.evidence.enabled and cfg.prompt == "boxes" and mmap is not None
         logodds = found = allowed = None
@@ -528,29 +541,71 @@ class MonaMasker:
                 follow = forward_warp_mask(self._found, self._prev_flow)
             found = mask_evidence.regions(logodds, cfg.evidence, follow)
             allowed = mask_evidence.bound(logodds, cfg.evidence, follow)
+        sec["motion_map"] += t_ev - t0
+        sec["evidence"] += time.perf_counter() - t_ev
+        return _Analysis(p, sec, image, dyn, mmap, theta, m_t, motion_theta, use_evidence,
+                         logodds, found, allowed)
+
+    def _emit(self, a: _Analysis) -> None:
+        """Frame ``a.p``'s prompts, and its segmentation started (``_resolve`` returns its
+        MaskFrame); the frame before must be resolved (its mask is this one's prior)."""
+        cfg = self.config
+        p, sec, image, dyn, mmap = a.p, a.sec, a.image, a.dyn, a.mmap
+        found, allowed = a.found, a.allowed
+        t0 = time.perf_counter()
+        dyn_xy = dyn.dynamic_points
+        carried_prev = None
+        if self._prev_small is not None and self._prev_flow is not None:
+            carried_prev = self._carry_prior()
+        prior = carried_prev if cfg.mask_prior and cfg.prompt != "points" else None
+        if a.use_evidence:
             # The objects followed so far are the prior of the detector and the segmenter.
             prior = found if prior is None or allowed is None else (found | (prior & allowed))
+        sec["motion_map"] += time.perf_counter() - t0
         t1b = time.perf_counter()
-        context = FrameContext(self._index[p], mmap, theta, m_t, dyn_xy, motion_theta, dyn.points,
-                               prior, dyn.residual[dyn.is_dynamic], found)
+        context = FrameContext(self._index[p], mmap, a.theta, a.m_t, dyn_xy, a.motion_theta,
+                               dyn.points, prior, dyn.residual[dyn.is_dynamic], found)
         boxes = Boxes.empty() if cfg.prompt == "points" else self.detector.detect(image, context)
         t2 = time.perf_counter()
         filt = None
         if cfg.prompt == "boxes":
             filt = adaptive_box_filter(boxes.xyxy, dyn_xy, cfg.tau0, cfg.box_filter_unit)
             keep = filt.keep
-            if use_evidence and not self.detector.draws_motion and found.any():
+            if a.use_evidence and not self.detector.draws_motion and found.any():
                 # An object's box that the filter drops in this frame (too few dynamic points
                 # on it now) stays while it holds an object followed.
                 keep = keep | self._holds(boxes, found, image.shape[:2])
             kept = boxes.select(keep)
-            if use_evidence and self.detector.draws_motion:
+            if a.use_evidence and self.detector.draws_motion:
                 kept = self._with_evidence(kept, found, allowed, image.shape[:2])
         elif cfg.prompt == "raw-boxes":
             kept = boxes
         else:
             kept = Boxes.empty()
         t3 = time.perf_counter()
+        sec["detection"] += t2 - t1b
+        sec["box_filter"] += t3 - t2
+        job = (image, kept, dyn_xy, context, allowed, carried_prev)
+        if cfg.segment_async:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix="mona-segment")
+            done = self._pool.submit(self._segment, *job)
+        else:
+            done = Future()
+            done.set_result(self._segment(*job))
+        # Release what no later frame needs: later motion maps chain flows from p + 1 on, and
+        # later frames' m_t are their own (or, for the last frame, its backward flow's).
+        self._prev_map, self._prev_flow = mmap, self._flows.pop(p, None)
+        self._logodds, self._found = a.logodds, found
+        self._m.pop(p - 1, None)
+        self._pending = (p, done, sec, dyn, boxes, kept, filt, mmap, a.logodds)
+
+    def _segment(self, image, kept, dyn_xy, context, allowed, carried_prev):
+        """The frame's mask from its prompts, at full and analysis resolution, its stability and
+        reliability, and the seconds spent (on the worker thread with ``segment_async``: it
+        reads only its arguments and the segmenter, which nothing else uses)."""
+        cfg = self.config
+        t0 = time.perf_counter()
         if cfg.prompt == "points":
             mask = self.segmenter.segment(image, None, dyn_xy, context)
         elif len(kept):
@@ -566,22 +621,24 @@ class MonaMasker:
         # Reduced once: this frame's stability and the next frame's prior both use it.
         small = self._analysis_mask(mask)
         stability, reliable = self._reliability(mask, small, carried_prev)
-        t4 = time.perf_counter()
-        sec["motion_map"] += t_ev - t0
-        sec["evidence"] += t1b - t_ev
-        sec["detection"] += t2 - t1b
-        sec["box_filter"] += t3 - t2
-        sec["segmentation"] += t4 - t3
-        # Release what no later frame needs: later motion maps chain flows from p + 1 on, and
-        # later frames' m_t are their own (or, for the last frame, its backward flow's).
-        del self._images[p]
-        self._prev_map, self._prev_flow = mmap, self._flows.pop(p, None)
+        return mask, small, stability, reliable, time.perf_counter() - t0
+
+    def _resolve(self) -> list[MaskFrame]:
+        """The MaskFrame of the frame whose segmentation is under way (waiting for it), and
+        the copies for the frames that repeat it; none when no frame is under way."""
+        if self._pending is None:
+            return []
+        p, done, sec, dyn, boxes, kept, filt, mmap, logodds = self._pending
+        self._pending = None
+        mask, small, stability, reliable, seconds = done.result()
+        sec["segmentation"] += seconds
         self._prev_small = small
-        self._logodds, self._found = logodds, found
-        self._m.pop(p - 1, None)
+        del self._images[p]
         index = self._index.pop(p)
-        return MaskFrame(index, mask, dyn, boxes, kept, filt, mmap, sec, logodds, stability,
-                         reliable)
+        self._last_out = MaskFrame(index, mask, dyn, boxes, kept, filt, mmap, sec, logodds,
+                                   stability, reliable)
+        return [self._last_out] + [self._copy_for(self._last_out, i)
+                                   for i in self._repeats.pop(p, ())]
 
     def _without_ignored(self, mmap: np.ndarray | None, dyn: DynamicPoints):
         """The motion map and dynamic points with nothing inside the ignored pixels."""
@@ -667,6 +724,22 @@ class MonaMasker:
     def _upsample(small: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         H, W = shape
         return cv2.resize(small.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR) > 0.5
+
+
+class _Analysis(NamedTuple):
+    """A frame's analysis before its prompts (MonaMasker._analyse)."""
+    p: int
+    sec: dict
+    image: np.ndarray
+    dyn: DynamicPoints
+    mmap: np.ndarray | None
+    theta: float
+    m_t: float
+    motion_theta: float
+    use_evidence: bool
+    logodds: np.ndarray | None
+    found: np.ndarray | None
+    allowed: np.ndarray | None
 
 
 IGNORE_MARGIN = 6   # analysis pixels left out around ignored pixels (MonaMasker's ``ignore``)

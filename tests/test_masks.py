@@ -140,6 +140,36 @@ def test_streaming_gives_one_mask_per_frame_in_order_with_bounded_buffers():
                                    "detection", "box_filter", "segmentation"}
 
 
+def test_segmenting_on_a_worker_changes_when_masks_arrive_not_what_they_are():
+    # The worker segments frame t while the caller analyses frame t + 1 (and the VO steps): the
+    # masks, their stability and reliability must equal the synchronous ones, repeats included,
+    # and each arrives exactly one push later.
+    frames, _, _, _ = pan_scene(14)
+    stream = [(k, f) for k, f in enumerate(frames)]
+    stream.insert(6, (6, frames[5]))                  # frame 6 repeats frame 5
+    stream = [(i, f) for i, (_, f) in enumerate(stream)]
+    got, arrival = {}, {}
+    for flag in (False, True):
+        masker = MonaMasker(dataclasses.replace(SMALL, segment_async=flag))
+        out, when = [], []
+        for n, (i, f) in enumerate(stream):
+            new = masker.push_repeat(i) if i == 6 else masker.push(i, f)
+            out += new
+            when += [n] * len(new)
+        out += masker.flush()
+        got[flag], arrival[flag] = out, when
+    sync, asyn = got[False], got[True]
+    assert [o.index for o in asyn] == [o.index for o in sync] == list(range(len(stream)))
+    assert sync[6].repeat_of == 5 and asyn[6].repeat_of == 5
+    assert sum(o.mask.any() for o in sync) >= 8       # the comparison is of masks, not blanks
+    for a, b in zip(sync, asyn):
+        assert np.array_equal(a.mask, b.mask)
+        assert a.reliable == b.reliable
+        assert a.stability == b.stability or (np.isnan(a.stability) and np.isnan(b.stability))
+    later = [b - a for a, b in zip(arrival[False], arrival[True])]
+    assert later and set(later) == {1}
+
+
 def test_compute_masks_takes_frame_objects_or_pairs_and_short_inputs():
     frames, _, _, _ = pan_scene(3)
     got = list(compute_masks([(7, frames[0])], SMALL))
