@@ -54,10 +54,9 @@ Per frame t (stages timed in ``MaskFrame.seconds``):
 ``segmentation``    the prompts (``config.prompt``) to ``config.segmenter``. With
                     ``segment_async`` it runs on a worker thread while the caller goes on
                     (the next frame's flow, tracks, motion map and evidence; the VO's step on
-                    the frame before):
-                    only the next frame's prompts need this frame's mask (their prior), so they
-                    wait for it there, and the output is the same. A frame's mask then arrives
-                    one push later.
+                    the frame before). Only the next frame's prompts need this frame's mask
+                    (their prior), so they wait for it there, and the output is the same. A
+                    frame's mask then arrives one push later.
 
 Do no harm: each :class:`MaskFrame` says whether the VO should use it (``reliable``): a mask
 covering more than ``vo_max_coverage`` of the frame, or one whose IoU with the previous mask
@@ -287,7 +286,8 @@ class MonaMasker:
         self._repeats: dict[int, list[int]] = {}        # position -> indices of the frames that
                                                         # repeat it (push_repeat), until emitted
         self._last_out: MaskFrame | None = None         # the last mask emitted
-        self._pending: tuple | None = None              # the frame being segmented (_emit)
+        self._pending: tuple | None = None              # (analysis, future, boxes, kept, box
+                                                        # filter) of the frame being segmented
         self._pool: ThreadPoolExecutor | None = None    # its worker (segment_async)
         # Pixels that are no part of the scene (a burned-in overlay painted over,
         # mona_vo.overlays): the painting changes with the scene around it but does not move
@@ -561,8 +561,8 @@ class MonaMasker:
         if a.use_evidence:
             # The objects followed so far are the prior of the detector and the segmenter.
             prior = found if prior is None or allowed is None else (found | (prior & allowed))
-        sec["motion_map"] += time.perf_counter() - t0
         t1b = time.perf_counter()
+        sec["motion_map"] += t1b - t0
         context = FrameContext(self._index[p], mmap, a.theta, a.m_t, dyn_xy, a.motion_theta,
                                dyn.points, prior, dyn.residual[dyn.is_dynamic], found)
         boxes = Boxes.empty() if cfg.prompt == "points" else self.detector.detect(image, context)
@@ -598,12 +598,13 @@ class MonaMasker:
         self._prev_map, self._prev_flow = mmap, self._flows.pop(p, None)
         self._logodds, self._found = a.logodds, found
         self._m.pop(p - 1, None)
-        self._pending = (p, done, sec, dyn, boxes, kept, filt, mmap, a.logodds)
+        self._pending = (a, done, boxes, kept, filt)
 
     def _segment(self, image, kept, dyn_xy, context, allowed, carried_prev):
         """The frame's mask from its prompts, at full and analysis resolution, its stability and
         reliability, and the seconds spent (on the worker thread with ``segment_async``: it
-        reads only its arguments and the segmenter, which nothing else uses)."""
+        reads only its arguments, settings fixed before the first frame, and the segmenter,
+        which nothing else uses)."""
         cfg = self.config
         t0 = time.perf_counter()
         if cfg.prompt == "points":
@@ -628,17 +629,17 @@ class MonaMasker:
         the copies for the frames that repeat it; none when no frame is under way."""
         if self._pending is None:
             return []
-        p, done, sec, dyn, boxes, kept, filt, mmap, logodds = self._pending
+        a, done, boxes, kept, filt = self._pending
         self._pending = None
         mask, small, stability, reliable, seconds = done.result()
-        sec["segmentation"] += seconds
+        a.sec["segmentation"] += seconds
         self._prev_small = small
-        del self._images[p]
-        index = self._index.pop(p)
-        self._last_out = MaskFrame(index, mask, dyn, boxes, kept, filt, mmap, sec, logodds,
-                                   stability, reliable)
+        del self._images[a.p]
+        index = self._index.pop(a.p)
+        self._last_out = MaskFrame(index, mask, a.dyn, boxes, kept, filt, a.mmap, a.sec,
+                                   a.logodds, stability, reliable)
         return [self._last_out] + [self._copy_for(self._last_out, i)
-                                   for i in self._repeats.pop(p, ())]
+                                   for i in self._repeats.pop(a.p, ())]
 
     def _without_ignored(self, mmap: np.ndarray | None, dyn: DynamicPoints):
         """The motion map and dynamic points with nothing inside the ignored pixels."""
