@@ -11,7 +11,7 @@ from mona_vo.detection import (Boxes, Detector, FrameContext, MotionDetector,
                                MotionDetectorConfig, merge_boxes)
 from mona_vo.errors import ConfigError, InputError
 from mona_vo.masks import MaskConfig, MonaMasker, compute_masks
-from mona_vo.segmentation import refine_edges
+from mona_vo.segmentation import Segmenter, refine_edges
 
 W, H = 256, 112
 BG_STEP = np.array([3.0, 1.0])        # the camera pans: the background moves by -BG_STEP
@@ -168,6 +168,31 @@ def test_segmenting_on_a_worker_changes_when_masks_arrive_not_what_they_are():
         assert a.stability == b.stability or (np.isnan(a.stability) and np.isnan(b.stability))
     later = [b - a for a, b in zip(arrival[False], arrival[True])]
     assert later and set(later) == {1}
+
+
+class _FailingSegmenter(Segmenter):
+    """Fails on the given frame, as a neural back end does on a bad checkpoint or input."""
+
+    def __init__(self, fail_at):
+        self.fail_at = fail_at
+
+    def segment(self, image, boxes=None, points=None, context=None):
+        if context is not None and context.frame_index == self.fail_at:
+            raise InputError(f"frame {self.fail_at}: the segmenter cannot read this image")
+        return np.zeros(image.shape[:2], bool)
+
+
+def test_an_error_on_the_worker_reaches_the_caller_with_its_message():
+    frames, mover_boxes, _, _ = pan_scene(12)
+    detector = ListDetector({k: [mover_boxes[k]] for k in range(12)})
+    masker = MonaMasker(dataclasses.replace(SMALL, prompt="raw-boxes"), detector=detector,
+                        segmenter=_FailingSegmenter(2))
+    got = []
+    with pytest.raises(InputError, match="frame 2: the segmenter"):
+        for k, f in enumerate(frames):
+            got += masker.push(k, f)
+        got += masker.flush()
+    assert [o.index for o in got] == [0, 1]      # the frames before it came out, in order
 
 
 def test_compute_masks_takes_frame_objects_or_pairs_and_short_inputs():
