@@ -349,7 +349,7 @@ class MonaMasker:
         if self._n == 0:
             raise InputError(f"frame {frame_index}: a repeat needs a frame before it")
         source = self._n - 1
-        if source < self._next_out and self._pending is None:   # already emitted (a flush)
+        if source < self._next_out:     # already emitted (only after a flush)
             return [self._copy_for(self._last_out, frame_index)]
         self._repeats.setdefault(source, []).append(int(frame_index))
         return []
