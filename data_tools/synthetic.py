@@ -1403,7 +1403,9 @@ class SyntheticScene:
             cov = self._check(prop, accepted, covs, rule=rule)
             if cov is None:
                 continue
-            if ref is not None and not self._crosses(prop, ref, cov, covs[accepted.index(ref)]):
+            # By identity: proposals are dataclasses of arrays, whose == cannot be a bool.
+            if ref is not None and not self._crosses(
+                    prop, ref, cov, covs[next(i for i, a in enumerate(accepted) if a is ref)]):
                 continue
             log.debug("mover %s/%s accepted after %d proposals", kind, behaviour, attempt + 1)
             return prop, cov

@@ -479,3 +479,10 @@ def test_describe_table_lists_each_seed_with_what_it_sampled():
         assert 40.0 <= r["hfov_deg"] <= 90.0 and 0.0 < r["coverage_mean"] <= r["coverage_max"] < 0.5
     table = describe_table(rows).splitlines()
     assert len(table) == 4 and table[2].startswith("| 4 | ") and "creep" in table[2]
+
+
+def test_a_mover_crossing_the_second_one_placed_is_found_among_them():
+    # Seed 242 draws a mover that must cross the second mover placed; finding it among the
+    # placed ones compared the array-holding proposals with ==, which raised.
+    scene = SyntheticScene(SceneConfig(width=160, height=68, n_frames=40, preset="mixed", seed=242))
+    assert len(scene) == 40 and scene.path_length() > 0
