@@ -8,20 +8,13 @@ from pathlib import Path
 import numpy as np
 
 from data_tools.atomic import atomic_path
+from mona_vo.geometry import align_similarity
 
 
 def align_sim3(est_xyz: np.ndarray, gt_xyz: np.ndarray) -> np.ndarray:
     """Umeyama Sim(3) alignment of (N, 3) positions onto GT (for drawing; the metrics use evo)."""
-    mu_e, mu_g = est_xyz.mean(0), gt_xyz.mean(0)
-    e, g = est_xyz - mu_e, gt_xyz - mu_g
-    U, S, Vt = np.linalg.svd(g.T @ e / len(e))
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    var = (e ** 2).sum() / len(e)
-    s = np.trace(np.diag(S) @ D) / var if var > 0 else 1.0
-    return (s * (R @ e.T)).T + mu_g
+    s, R, t = align_similarity(est_xyz, gt_xyz)
+    return s * np.asarray(est_xyz, np.float64) @ R.T + t
 
 
 def plot_trajectory(path: str | Path, est_xyz: np.ndarray, gt_xyz: np.ndarray | None = None, *,

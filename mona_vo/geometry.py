@@ -15,6 +15,11 @@ Dynamic probability
 Reprojection
     ``reprojection_residuals(T_world_cam, X, uv, intr)``: (N, 2) observed minus projected pixels,
     NaN behind the camera; built on :func:`mona_vo.conventions.reproject`.
+
+Similarity alignment
+    Umeyama's closed form (1991) for the scale, rotation and translation that best map one set
+    of 3-D points onto another: what evo's Sim(3) alignment computes, for the VO's own
+    consistency check (no ground truth) and for drawing.
 """
 from __future__ import annotations
 
@@ -89,3 +94,28 @@ def reprojection_errors(T_world_cam: np.ndarray, points_world: np.ndarray, pixel
     e = np.linalg.norm(reprojection_residuals(T_world_cam, points_world, pixels, intr), axis=1)
     e[~np.isfinite(e)] = np.inf
     return e
+
+
+def align_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Scale s, rotation R (3, 3) and translation t (3,) minimising the summed squared distance
+    from s R src_i + t to dst_i over (N, 3) points (Umeyama 1991). A set with no spread maps
+    with scale 1."""
+    a, b = np.asarray(src, np.float64).reshape(-1, 3), np.asarray(dst, np.float64).reshape(-1, 3)
+    mu_a, mu_b = a.mean(axis=0), b.mean(axis=0)
+    a0, b0 = a - mu_a, b - mu_b
+    U, S, Vt = np.linalg.svd(b0.T @ a0 / len(a))
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1.0
+    R = U @ D @ Vt
+    var = float((a0 ** 2).sum()) / len(a)
+    s = float(np.trace(np.diag(S) @ D)) / var if var > 0 else 1.0
+    return s, R, mu_b - s * R @ mu_a
+
+
+def aligned_rms(src: np.ndarray, dst: np.ndarray) -> float:
+    """RMS distance between (N, 3) points dst and src mapped onto them by
+    :func:`align_similarity`, in dst's units."""
+    s, R, t = align_similarity(src, dst)
+    d = s * np.asarray(src, np.float64).reshape(-1, 3) @ R.T + t - np.asarray(dst, np.float64).reshape(-1, 3)
+    return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1))))
