@@ -22,7 +22,8 @@ forced to 127.0.0.1 through ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``, Ray's local
 token authentication on (``RAY_AUTH_MODE=token``; the token lives in ``~/.ray/auth_token``).
 
 The quality verdict (:func:`clip_verdict`) says whether a clip is usable for curation, from its
-posed share, low-confidence share and reprojection error, with thresholds in
+posed share, low-confidence share, reprojection error, map segments, how far the global
+refinement moved the keyframes and how many points held the poses up, with thresholds in
 :class:`VerdictConfig`.
 
 Ray is imported inside the functions that need it, so importing this module stays cheap.
@@ -55,7 +56,7 @@ log = logging.getLogger(__name__)
 
 COLUMNS = ("input", "name", "status", "usable", "reason", "frames", "frames_with_pose",
            "low_confidence_share", "mask_coverage", "keyframes", "map_segments",
-           "reprojection_rmse_px", "seconds",
+           "reprojection_rmse_px", "global_shift_pct", "support_p10", "seconds",
            "frames_per_second", "node", "config_hash")
 STATUSES = ("ok", "failed", "skipped")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm")
@@ -77,6 +78,12 @@ class VerdictConfig:
     max_map_segments: int = setting(1, ge=1)  # maps the trajectory is made of: after a loss of
                                               # tracking (a cut between shots) the scale and the
                                               # pose across the join are not measured
+    max_global_shift_pct: float = setting(0.5, gt=0.0)  # the global refinement moved the
+                                              # keyframes by more than this % of their path
+                                              # (after a similarity): the window's map was not
+                                              # consistent (scale slid, wrong start)
+    min_support_p10: float = setting(40.0, ge=0.0)  # a tenth of the posed frames rested on
+                                              # fewer PnP inliers than this
 
     def validate(self) -> None:
         check_fields(self, "verdict.")
@@ -190,6 +197,14 @@ def clip_verdict(summary: dict, config: VerdictConfig | None = None) -> Verdict:
     rmse = summary.get("reprojection_rmse_px")
     if rmse is not None and math.isfinite(rmse) and rmse > config.max_reprojection_rmse_px:
         reasons.append(f"reprojection RMSE {rmse:.2f} px (> {config.max_reprojection_rmse_px:g} px)")
+    shift = summary.get("global_shift_pct")
+    if shift is not None and math.isfinite(shift) and shift > config.max_global_shift_pct:
+        reasons.append(f"the global refinement moved the keyframes by {shift:.2f} % of their path "
+                       f"(> {config.max_global_shift_pct:g} %: the streaming map was not consistent)")
+    support = summary.get("support_p10")
+    if support is not None and math.isfinite(support) and support < config.min_support_p10:
+        reasons.append(f"a tenth of the poses rest on fewer than {support:.0f} points "
+                       f"(< {config.min_support_p10:g})")
     return Verdict(not reasons, tuple(reasons))
 
 
@@ -206,7 +221,13 @@ def summary_from_report(report: dict) -> dict:
         "keyframes": int(report.get("keyframes") or 0),
         "map_segments": len(report["map_segments"]) if "map_segments" in report else None,
         "reprojection_rmse_px": None if rmse is None else round(rmse, 4),
+        "global_shift_pct": _finite_or_none((report.get("global_refinement") or {}).get("keyframe_shift_pct")),
+        "support_p10": _finite_or_none((report.get("pose_support") or {}).get("inliers_p10")),
     }
+
+
+def _finite_or_none(value) -> float | None:
+    return round(float(value), 4) if isinstance(value, (int, float)) and math.isfinite(value) else None
 
 
 def judged(row: dict, config: VerdictConfig | None = None) -> dict:

@@ -78,6 +78,8 @@ _NUMBERS = (
     ("keyframes", "keyfr.", "{:.0f}"),
     ("map_segments", "maps", "{:.0f}"),
     ("reprojection_rmse_px", "RMSE px", "{:.2f}"),
+    ("global_shift_pct", "shift %", "{:.2f}"),
+    ("support_p10", "support", "{:.0f}"),
     ("seconds", "s", "{:.1f}"),
     ("frames_per_second", "frames/s", "{:.2f}"),
 )

@@ -53,8 +53,39 @@ def test_verdict_follows_its_thresholds():
     assert clip_verdict({**good, "map_segments": None}, cfg).usable     # an older report
 
 
+def test_verdict_refuses_a_map_the_global_refinement_had_to_move_or_poses_on_few_points():
+    cfg = VerdictConfig(max_global_shift_pct=0.5, min_support_p10=40)
+    good = {"frames": 40, "frames_with_pose": 40, "low_confidence_share": 0.0,
+            "reprojection_rmse_px": 0.3, "global_shift_pct": 0.2, "support_p10": 120}
+    assert clip_verdict(good, cfg).usable
+    v = clip_verdict({**good, "global_shift_pct": 4.7}, cfg)
+    assert not v.usable and "4.70 % of their path" in v.reasons[0]
+    v = clip_verdict({**good, "support_p10": 23}, cfg)
+    assert not v.usable and "fewer than 23 points" in v.reasons[0]
+    assert len(clip_verdict({**good, "global_shift_pct": 4.7, "support_p10": 23}, cfg).reasons) == 2
+    # Not measured (no global refinement, an older report, no posed frame): not held against it.
+    for missing in ({"global_shift_pct": None}, {"global_shift_pct": float("nan")}, {"support_p10": None}):
+        assert clip_verdict({**good, **missing, "support_p10": missing.get("support_p10", 120)}, cfg).usable
+    assert clip_verdict({**good, "global_shift_pct": 4.7}, VerdictConfig(max_global_shift_pct=5)).usable
+
+
+def test_the_verdicts_numbers_come_from_the_report_run_writes():
+    from mona_vo.batch import summary_from_report
+
+    report = {"frames": 40, "frames_with_pose": 40, "low_confidence_frames": [],
+              "reprojection_rmse_px": 0.3, "map_segments": [{"first": "0", "last": "39"}],
+              "global_refinement": {"keyframe_shift_pct": 0.12345678},
+              "pose_support": {"frames": 40, "inliers_p10": 87.0, "inliers_median": 140.0}}
+    s = summary_from_report(report)
+    assert s["global_shift_pct"] == 0.1235 and s["support_p10"] == 87.0
+    s = summary_from_report({**report, "global_refinement": None, "pose_support": {"inliers_p10": None}})
+    assert s["global_shift_pct"] is None and s["support_p10"] is None
+
+
 @pytest.mark.parametrize("key, value", [("verdict.min_posed_share", "1.5"), ("verdict.min_frames", "0"),
                                         ("verdict.max_reprojection_rmse_px", "0"),
+                                        ("verdict.max_global_shift_pct", "0"),
+                                        ("verdict.min_support_p10", "-1"),
                                         ("batch.cpus_per_video", "0"), ("batch.max_retries", "-1"),
                                         ("batch.nonsense", "1"), ("vo.grid_size", "3")])
 def test_batch_config_refuses_bad_values_naming_the_key(key, value):
