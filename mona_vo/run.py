@@ -150,6 +150,7 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         # Translation evidence over the clip: rotation-free parallax vs the tracking noise floor.
         "parallax": getattr(vo, "parallax", None),
         "global_refinement": getattr(vo, "refine", None) or None,
+        "pose_support": vo.pose_support(),
         "status_counts": {s: vo.status.count(s) for s in sorted(set(vo.status))},
         # One entry per map; a new one starts where tracking was lost (a blank stretch, a cut
         # between shots): each has its own scale, and the pose across a join is not measured.

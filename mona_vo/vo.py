@@ -53,7 +53,7 @@ from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose,
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissimilar_tracks,
                               drift_test, dynamic_test, estimate_pose, interpolate_pose,
-                              keyframe_needed, pair_matches, predict_pose, refine_pose,
+                              keyframe_needed, keyframe_shift_pct, pair_matches, predict_pose, refine_pose,
                               rotation_free_parallax_px, segment_spans, triangulate_against,
                               typical_speed, typical_velocity, walk_back)
 
@@ -215,6 +215,17 @@ class VOResult:
     @property
     def low_confidence(self) -> np.ndarray:
         return np.array([s in LOW_CONFIDENCE for s in self.status], bool)
+
+    def pose_support(self) -> dict:
+        """How many map points held the poses up, over the frames posed on the map: the 10th
+        percentile and the median of their PnP inliers (None without such frames). A clip
+        whose tenth percentile is low crossed a stretch where the pose rested on a few points
+        (a fast turn, a blank wall), where a wrong pose is seldom caught."""
+        n = np.asarray(self.inliers, np.float64)[~self.low_confidence]
+        if not len(n):
+            return {"frames": 0, "inliers_p10": None, "inliers_median": None}
+        return {"frames": int(len(n)), "inliers_p10": float(np.percentile(n, 10)),
+                "inliers_median": float(np.median(n))}
 
 
 @dataclass
@@ -907,6 +918,7 @@ class VisualOdometry:
         # takes it (generated creep from a focal 28 % too long: +6.9 % after, 0.45 -> 0.13 % of
         # path). Where the clip does not constrain it, the prior keeps the start value.
         free = self.cfg.global_camera != "none" and not self._camera_known
+        centres_before = graph.T_world_cam[:, :3, 3].copy()
         res = refine_global(graph, self.cfg.ba, refine_focal=free)
         if free and self.cfg.global_camera == "focal+centre" and res.focal is not None:
             # The principal point from the focal-only solution: freed together from the start,
@@ -938,6 +950,7 @@ class VisualOdometry:
         reposed = self._repose_frames()
         self.timings["global_ba"] += time.perf_counter() - t0
         return {"keyframes": int(kf.n), "landmarks": int(valid.sum()),
+                "keyframe_shift_pct": keyframe_shift_pct(centres_before, kf.T_world_cam[:kf.n, :3, 3]),
                 "observations_used": int(res.n_observations_used),
                 "rmse_px": float(res.rmse_px), "seconds": float(res.seconds),
                 "frames_reposed": reposed, **focal}

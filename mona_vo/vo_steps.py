@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose
-from mona_vo.geometry import cauchy_dynamic_probability, reprojection_errors
+from mona_vo.geometry import aligned_rms, cauchy_dynamic_probability, reprojection_errors
 from mona_vo.tracking import LKTracker, track_forward_backward
 from mona_vo.two_view import pixel_homography, rotation_parallax_deg, triangulate
 
@@ -146,6 +146,20 @@ def keyframe_needed(*, gap: int, max_gap: int, parallax_px: float, parallax_min_
     base = max(lm_last, 1)
     return (parallax_px >= parallax_min_px or lm_now < min_tracked * base
             or (lm_now < falling * base and lm_now < min_landmarks))
+
+
+def keyframe_shift_pct(before: np.ndarray, after: np.ndarray) -> float:
+    """How far the global refinement moved the (K, 3) keyframe centres, as a self-check of the
+    sliding window: the RMS distance left once the centres before are mapped onto those after by
+    a similarity (scale, rotation, translation: the gauge a monocular map is free in), in percent
+    of the refined keyframes' path. A window that kept a consistent map is moved little; one
+    whose scale slid, or that built its map on a wrong start, is moved much, whichever way the
+    global solution settles. NaN with fewer than three keyframes or no path."""
+    after = np.asarray(after, np.float64).reshape(-1, 3)
+    path = float(np.linalg.norm(np.diff(after, axis=0), axis=1).sum())
+    if len(after) < 3 or not path > 0:
+        return float("nan")
+    return 100.0 * aligned_rms(before, after) / path
 
 
 def rotation_free_parallax_px(uv_a: np.ndarray, uv_b: np.ndarray, intr_a: Intrinsics,

@@ -4,11 +4,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
-from mona_vo.geometry import (cauchy_dynamic_probability, find_essential, reprojection_errors,
-                              reprojection_residuals)
+from mona_vo.geometry import (align_similarity, aligned_rms, cauchy_dynamic_probability,
+                              find_essential, reprojection_errors, reprojection_residuals)
 from mona_vo.two_view import homography_parallax_px, normalize, relative_pose
 from mona_vo.vo_steps import (ParallaxEvidence, PoseSettings, drift_test, dynamic_test,
-                              estimate_pose, interpolate_pose, keyframe_needed, predict_pose,
+                              estimate_pose, interpolate_pose, keyframe_needed,
+                              keyframe_shift_pct, predict_pose,
                               rotation_free_parallax_px, triangulate_against)
 
 INTR = Intrinsics(500.0, 500.0, 320.0, 240.0)
@@ -406,3 +407,37 @@ def test_segment_spans_give_each_maps_first_and_last_frame_in_order():
     assert segment_spans(np.array([-1, 0, 0, 0, -1, -1, 1, 1, -1])) == [(1, 3), (6, 7)]
     assert segment_spans(np.array([-1, -1])) == []
     assert segment_spans(np.array([0, 0, 0])) == [(0, 2)]
+
+
+def test_keyframe_shift_ignores_the_gauge_and_measures_what_the_refinement_changed():
+    rng = np.random.default_rng(0)
+    after = np.cumsum(rng.normal(0, 0.1, (12, 3)), axis=0)
+    path = np.linalg.norm(np.diff(after, axis=0), axis=1).sum()
+    R = Rotation.from_euler("xyz", [20, -35, 60], degrees=True).as_matrix()
+    before = 3.7 * after @ R.T + [1.0, -2.0, 5.0]       # the same map in another gauge
+    assert keyframe_shift_pct(before, after) < 1e-9
+    # A scale that slid halfway along is what the window gets wrong and the refinement mends.
+    slid = after.copy()
+    slid[6:] = slid[5] + 2.0 * (after[6:] - after[5])
+    shift = keyframe_shift_pct(slid, after)
+    expected = 100 * aligned_rms(slid, after) / path
+    assert shift == pytest.approx(expected) and shift > 5
+    # Moving one keyframe by 1 % of the path shows as about 1 % / sqrt(K) RMS.
+    nudged = after.copy()
+    nudged[7] += [0.01 * path, 0, 0]
+    assert 0.2 < keyframe_shift_pct(nudged, after) < 0.35
+    assert np.isnan(keyframe_shift_pct(after[:2], after[:2]))
+    assert np.isnan(keyframe_shift_pct(np.zeros((5, 3)), np.zeros((5, 3))))
+
+
+def test_similarity_alignment_recovers_scale_rotation_and_translation():
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(30, 3))
+    R = Rotation.from_rotvec([0.3, -1.1, 0.4]).as_matrix()
+    dst = 0.25 * src @ R.T + [4.0, 0.5, -1.0]
+    s, R_est, t = align_similarity(src, dst)
+    assert s == pytest.approx(0.25) and np.allclose(R_est, R) and np.allclose(t, [4.0, 0.5, -1.0])
+    assert np.linalg.det(R_est) == pytest.approx(1.0)
+    assert aligned_rms(src, dst) < 1e-12
+    # A reflection is not a rotation: a mirrored set cannot be aligned exactly.
+    assert aligned_rms(src * [1, 1, -1], dst) > 0.05
