@@ -27,8 +27,10 @@ from data_tools.repeats import KINDS as REPEAT_KINDS, shown_images, shown_order
 from data_tools.synthetic import SceneConfig, SyntheticScene
 from eval.mask_metrics import region_similarity
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
+from mona_vo.batch import clip_verdict, summary_from_report
 from mona_vo.errors import EvalError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
+from mona_vo.run import build_report
 
 
 @dataclass(frozen=True)
@@ -91,6 +93,11 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     except EvalError as exc:  # one sequence that cannot be scored must not end the benchmark
         errors["status"] = f"failed: {exc}"
     n = len(frames)
+    # The verdict `batch` would give this clip, from the report `run` would write.
+    report = build_report(result, input_path=f"generated/{variant}", source=None, masks=variant,
+                          config=config, calib_given=calib == "given")
+    summary = summary_from_report(report)
+    verdict = clip_verdict(summary)
     vo_seconds = sum(v for k, v in result.timings.items() if k.startswith("vo."))
     mask_seconds = sum(v for k, v in result.timings.items() if k.startswith("masks."))
     true_fx = scene.intrinsics.fx
@@ -111,7 +118,14 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
         "dropped": dict(result.vo.drops),
         "mask_j": float(np.mean(quality["mask_j"])) if quality["mask_j"] else nan,
         "mask_fp_pct": 100 * float(np.mean(quality["mask_fp"])) if quality["mask_fp"] else nan,
+        "global_shift_pct": _nan_if_none(summary["global_shift_pct"]),
+        "support_p10": _nan_if_none(summary["support_p10"]),
+        "usable": verdict.usable, "verdict": verdict.text(),
     }
+
+
+def _nan_if_none(v) -> float:
+    return float("nan") if v is None else float(v)
 
 
 def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
@@ -207,6 +221,33 @@ def summarize(rows: list[dict], baseline: str = "none") -> list[dict]:
     return out
 
 
+def verdict_quality(rows: list[dict], good_pct: float) -> dict:
+    """How well ``batch``'s verdict picks the good trajectories among the rows that translate
+    (scored by ATE): a clip is good when its ATE is at most ``good_pct`` % of its path.
+    precision: share of the clips called usable that are good (what a curator keeps);
+    recall: share of the good clips called usable (what the verdict throws away)."""
+    scored = [r for r in rows if np.isfinite(r["ate_pct"])]
+    usable = [r for r in scored if r["usable"]]
+    good = [r for r in scored if r["ate_pct"] <= good_pct]
+    hits = [r for r in usable if r["ate_pct"] <= good_pct]
+    return {"good_pct": good_pct, "scored": len(scored), "good": len(good), "usable": len(usable),
+            "usable_and_good": len(hits),
+            "precision": len(hits) / len(usable) if usable else float("nan"),
+            "recall": len(hits) / len(good) if good else float("nan"),
+            "base_rate": len(good) / len(scored) if scored else float("nan"),
+            "worst_usable_pct": max((r["ate_pct"] for r in usable), default=float("nan")),
+            "best_unusable_pct": min((r["ate_pct"] for r in scored if not r["usable"]),
+                                     default=float("nan"))}
+
+
+def format_verdict_quality(q: dict) -> str:
+    return (f"verdict (good: ATE <= {q['good_pct']:g} % of path), over {q['scored']} scored runs: "
+            f"{q['usable']} usable, {q['usable_and_good']} of them good; precision "
+            f"{q['precision']:.2f} (all scored runs: {q['base_rate']:.2f}), recall {q['recall']:.2f} "
+            f"({q['good']} good); worst usable {q['worst_usable_pct']:.2f} %, best not usable "
+            f"{q['best_unusable_pct']:.2f} %")
+
+
 def format_row(r: dict) -> str:
     return (f"{r['preset']:13s} seed {r['seed']:2d} {r['variant']:11s} cov {100 * r['coverage']:5.1f}%  "
             f"ATE {r['ate']:.4f} m {r['ate_pct']:7.3f}% of {r['path_m']:5.2f} m  "
@@ -219,6 +260,8 @@ def format_row(r: dict) -> str:
                if np.isfinite(r.get("mask_j", float("nan"))) else "")
             + (f"  rot {r['rot_rmse_deg']:.3f} deg, est. translation {r['est_translation_extent']:.3g}"
                if np.isfinite(r["rot_rmse_deg"]) else "")
+            + f"  shift {r['global_shift_pct']:.2f} %, support {r['support_p10']:.0f}, "
+              + ("usable" if r["usable"] else "not usable")
             + ("" if r["status"] == "ok" else f"  {r['status']}"))
 
 
@@ -283,6 +326,9 @@ def main(argv=None) -> int:
     ap.add_argument("--frame-repeats", choices=REPEAT_KINDS,
                     help="show the frames with repeats of this kind (data_tools.repeats), as "
                          "online videos carry them")
+    ap.add_argument("--good-pct", type=float, default=1.0,
+                    help="a trajectory within this ATE (%% of path) is good, for the verdict's "
+                         "precision and recall (default 1)")
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of each sequence, to measure the run-to-run spread (default 1)")
     args = ap.parse_args(argv)
@@ -298,12 +344,17 @@ def main(argv=None) -> int:
     print()
     summary = summarize(rows)
     print(format_summary(summary))
+    verdicts = {v: verdict_quality([r for r in rows if r["variant"] == v], args.good_pct)
+                for v in dict.fromkeys(r["variant"] for r in rows)}
+    for v, q in verdicts.items():
+        print(f"{v}: {format_verdict_quality(q)}")
     if args.out:
         import json
 
         from data_tools.atomic import write_text_atomic
 
-        write_text_atomic(args.out, json.dumps({"rows": rows, "summary": summary}, indent=1, default=float) + "\n")
+        write_text_atomic(args.out, json.dumps({"rows": rows, "summary": summary, "verdict": verdicts},
+                                               indent=1, default=float) + "\n")
     print(f"peak memory {peak_memory_mb():.0f} MB")
     return 0
 

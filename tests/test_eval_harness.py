@@ -208,3 +208,19 @@ def test_a_masks_draw_runs_only_the_variants_that_use_mona_masks(tmp_path, monke
                            [{"vo.grid_size": "15"}, {"masks.dynamic_points.seed": "2"}])
     assert seen == [("vo.grid_size=15", ["none", "mona", "mona-points"]),
                     ("masks.dynamic_points.seed=2", ["mona", "mona-points"])]
+
+
+def test_verdict_quality_counts_what_a_curator_keeps_and_throws_away():
+    from eval.vo_bench import verdict_quality
+
+    nan = float("nan")
+    rows = [{"ate_pct": a, "usable": u} for a, u in
+            [(0.2, True), (0.4, True), (3.0, True), (0.8, False), (6.0, False), (nan, False)]]
+    q = verdict_quality(rows, 1.0)
+    assert (q["scored"], q["good"], q["usable"], q["usable_and_good"]) == (5, 3, 3, 2)
+    assert q["precision"] == pytest.approx(2 / 3) and q["recall"] == pytest.approx(2 / 3)
+    assert q["base_rate"] == pytest.approx(3 / 5)
+    assert q["worst_usable_pct"] == 3.0 and q["best_unusable_pct"] == 0.8
+    q = verdict_quality(rows, 5.0)
+    assert q["precision"] == 1.0 and q["recall"] == pytest.approx(3 / 4)
+    assert np.isnan(verdict_quality([], 1.0)["precision"])
