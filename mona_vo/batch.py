@@ -211,8 +211,7 @@ def clip_verdict(summary: dict, config: VerdictConfig | None = None) -> Verdict:
 def summary_from_report(report: dict) -> dict:
     """The key numbers of one run's report.json, as batch.csv holds them."""
     n = int(report.get("frames") or 0)
-    rmse = report.get("reprojection_rmse_px")
-    rmse = float(rmse) if isinstance(rmse, (int, float)) and math.isfinite(rmse) else None
+    refine, support = report.get("global_refinement") or {}, report.get("pose_support") or {}
     return {
         "frames": n,
         "frames_with_pose": int(report.get("frames_with_pose") or 0),
@@ -220,9 +219,9 @@ def summary_from_report(report: dict) -> dict:
         "mask_coverage": round(float(report.get("mean_mask_coverage") or 0.0), 4),
         "keyframes": int(report.get("keyframes") or 0),
         "map_segments": len(report["map_segments"]) if "map_segments" in report else None,
-        "reprojection_rmse_px": None if rmse is None else round(rmse, 4),
-        "global_shift_pct": _finite_or_none((report.get("global_refinement") or {}).get("keyframe_shift_pct")),
-        "support_p10": _finite_or_none((report.get("pose_support") or {}).get("inliers_p10")),
+        "reprojection_rmse_px": _finite_or_none(report.get("reprojection_rmse_px")),
+        "global_shift_pct": _finite_or_none(refine.get("keyframe_shift_pct")),
+        "support_p10": _finite_or_none(support.get("inliers_p10")),
     }
 
 

@@ -116,6 +116,6 @@ def align_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarra
 def aligned_rms(src: np.ndarray, dst: np.ndarray) -> float:
     """RMS distance between (N, 3) points dst and src mapped onto them by
     :func:`align_similarity`, in dst's units."""
-    s, R, t = align_similarity(src, dst)
-    d = s * np.asarray(src, np.float64).reshape(-1, 3) @ R.T + t - np.asarray(dst, np.float64).reshape(-1, 3)
-    return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1))))
+    a, b = np.asarray(src, np.float64).reshape(-1, 3), np.asarray(dst, np.float64).reshape(-1, 3)
+    s, R, t = align_similarity(a, b)
+    return float(np.sqrt(np.mean(np.sum((s * a @ R.T + t - b) ** 2, axis=1))))

@@ -53,8 +53,8 @@ from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose,
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissimilar_tracks,
                               drift_test, dynamic_test, estimate_pose, interpolate_pose,
-                              keyframe_needed, keyframe_shift_pct, pair_matches, predict_pose, refine_pose,
-                              rotation_free_parallax_px, segment_spans, triangulate_against,
+                              keyframe_needed, keyframe_shift_pct, pair_matches, predict_pose,
+                              refine_pose, rotation_free_parallax_px, segment_spans, triangulate_against,
                               typical_speed, typical_velocity, walk_back)
 
 # Per-frame status strings (FrameStatus values), from most to least trustworthy.
@@ -949,8 +949,8 @@ class VisualOdometry:
             self._rmse = float(res.rmse_px)
         reposed = self._repose_frames()
         self.timings["global_ba"] += time.perf_counter() - t0
-        return {"keyframes": int(kf.n), "landmarks": int(valid.sum()),
-                "keyframe_shift_pct": keyframe_shift_pct(centres_before, kf.T_world_cam[:kf.n, :3, 3]),
+        shift = keyframe_shift_pct(centres_before, kf.T_world_cam[:kf.n, :3, 3])
+        return {"keyframes": int(kf.n), "landmarks": int(valid.sum()), "keyframe_shift_pct": shift,
                 "observations_used": int(res.n_observations_used),
                 "rmse_px": float(res.rmse_px), "seconds": float(res.seconds),
                 "frames_reposed": reposed, **focal}
