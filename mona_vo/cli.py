@@ -320,6 +320,7 @@ def _pipeline_config(args, *, speed_preset: bool = True):
 
 
 def _cmd_run(args) -> int:
+    from mona_vo.batch import clip_verdict, summary_from_report
     from mona_vo.run import run
 
     report = run(args.input, args.out, calib=args.calib, masks=args.masks,
@@ -328,6 +329,8 @@ def _cmd_run(args) -> int:
     fps = report["frames_per_second"].get("total")
     print(f"{report['frames']} frames, {report['keyframes']} keyframes, {fps:.1f} frames/s; "
           f"low-confidence frames: {len(report['low_confidence_frames'])}; wrote {args.out}/trajectory.txt")
+    # The verdict batch would give (its default thresholds), so that one clip is judged alike.
+    print(f"verdict: {clip_verdict(summary_from_report(report)).text()}")
     return 0
 
 

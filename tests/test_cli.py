@@ -8,6 +8,7 @@ import pytest
 
 from data_tools.tum import read_tum_trajectory
 from eval.metrics import Trajectory, evaluate_trajectory
+from mona_vo.batch import clip_verdict, summary_from_report
 
 
 def cli(exe, *args, ok=True):
@@ -31,8 +32,8 @@ def test_help_of_every_command_explains_options(mona_vo_exe):
 def test_run_with_given_masks_writes_trajectory_masks_report_and_plot(mona_vo_exe, small_scene, tmp_path):
     folder, scene = small_scene
     out = tmp_path / "run"
-    cli(mona_vo_exe, "run", folder, "--out", out, "--calib", folder / "calib.txt",
-        "--masks", folder / "masks", "--gt", folder / "groundtruth.txt")
+    proc = cli(mona_vo_exe, "run", folder, "--out", out, "--calib", folder / "calib.txt",
+               "--masks", folder / "masks", "--gt", folder / "groundtruth.txt")
     ts, poses = read_tum_trajectory(out / "trajectory.txt")
     assert len(ts) == len(scene) and np.array_equal(ts, np.arange(len(scene)))
     # The estimate is a real trajectory: close to GT after Sim(3) alignment.
@@ -47,6 +48,11 @@ def test_run_with_given_masks_writes_trajectory_masks_report_and_plot(mona_vo_ex
     assert abs(report["calibration"]["fx"] - scene.intrinsics.fx) < 1e-6
     assert report["frames_per_second"]["total"] > 0
     assert set(report["dropped"]) >= {"ba_masked_observations", "ba_masked_landmarks"}
+    # The self-checks batch's verdict reads, and that verdict, printed.
+    assert report["global_refinement"]["keyframe_shift_pct"] >= 0
+    assert report["pose_support"]["frames"] == len(scene) and report["pose_support"]["inliers_p10"] >= 12
+    verdict = clip_verdict(summary_from_report(report)).text()
+    assert proc.stdout.strip().splitlines()[-1] == f"verdict: {verdict}"
     plot = cv2.imread(str(out / "trajectory.png"))
     assert plot is not None and plot.shape[0] > 100 and plot.std() > 5
     assert not [p for p in out.iterdir() if p.name.startswith(".")], "temporary files left behind"
