@@ -33,9 +33,11 @@ from data_tools.atomic import write_text_atomic
 from data_tools.run_outputs import sigint_deferred
 from data_tools.tum import write_tum_trajectory
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
+from mona_vo.batch import clip_verdict, summary_from_report
 from mona_vo.config import apply_overrides, to_dict
 from mona_vo.errors import ConfigError, MonaVoError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
+from mona_vo.run import build_report
 
 VARIANTS = {
     "none": (None, {}),
@@ -49,7 +51,8 @@ MIN_MATCHED_FRACTION = 0.9   # fewer posed frames matched to GT than this: a war
 COLUMNS = ("sequence", "variant", "status", "ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path",
            "rot_rmse_deg", "rot_max_deg", "est_translation_extent",
            "frames", "frames_with_pose", "low_confidence", "n_matched", "scale", "seconds",
-           "frames_per_second", "camera", "focal_px", "warning")
+           "frames_per_second", "camera", "focal_px", "global_shift_pct", "support_p10", "usable",
+           "warning")
 
 
 @dataclass
@@ -121,6 +124,13 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
         row.update(frames=len(vo.timestamps), frames_with_pose=int(posed.sum()),
                    low_confidence=int(vo.low_confidence.sum()), focal_px=float(vo.focal),
                    camera="given" if seq.intrinsics is not None else "estimated")
+        # The verdict batch would give the run, from the report run would write: beside the
+        # metrics, every evaluated sequence is a check of the verdict against ground truth.
+        summary = summary_from_report(build_report(
+            result, input_path=seq.name, source=None, masks=masks_kind or "none",
+            config=variant_config(config, variant), calib_given=seq.intrinsics is not None))
+        row.update(global_shift_pct=summary["global_shift_pct"], support_p10=summary["support_p10"],
+                   usable=clip_verdict(summary).usable)
         est = Trajectory(vo.timestamps[posed], vo.poses[posed])
         m = score_trajectory(seq.gt, est, max_diff=seq.max_diff)
         if isinstance(m, RotationMetrics):

@@ -100,6 +100,9 @@ def test_eval_tum_on_a_generated_tum_folder_with_exact_gt(mona_vo_exe, tmp_path)
     ts, _ = read_tum_trajectory(out / "none" / "tum_seq" / "trajectory.txt")
     assert np.allclose(ts, stamps, atol=1e-6)   # stamped with rgb.txt's times
     assert float(row["ate_percent_of_path"]) < 5.0
+    # Beside the metrics, the verdict batch would give the run and the numbers it reads.
+    assert row["usable"] in ("True", "False") and float(row["support_p10"]) >= 12
+    assert float(row["global_shift_pct"]) >= 0
 
 
 def test_eval_tum_can_ignore_the_folders_calibration_and_estimate_the_camera(mona_vo_exe, tmp_path):
