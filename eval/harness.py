@@ -33,11 +33,11 @@ from data_tools.atomic import write_text_atomic
 from data_tools.run_outputs import sigint_deferred
 from data_tools.tum import write_tum_trajectory
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
-from mona_vo.batch import clip_verdict, summary_from_report
+from mona_vo.batch import clip_verdict
 from mona_vo.config import apply_overrides, to_dict
 from mona_vo.errors import ConfigError, MonaVoError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
-from mona_vo.run import build_report
+from mona_vo.run import clip_summary
 
 VARIANTS = {
     "none": (None, {}),
@@ -115,8 +115,9 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
             masks = seq.gt_masks()
         else:
             masks = masks_kind
+        run_config = variant_config(config, variant)
         result = estimate_trajectory(seq.frames(), intrinsics=seq.intrinsics, masks=masks,
-                                     config=variant_config(config, variant))
+                                     config=run_config)
         vo = result.vo
         posed = np.isfinite(vo.poses).all(axis=(1, 2))
         with sigint_deferred():
@@ -126,9 +127,8 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
                    camera="given" if seq.intrinsics is not None else "estimated")
         # The verdict batch would give the run, from the report run would write: beside the
         # metrics, every evaluated sequence is a check of the verdict against ground truth.
-        summary = summary_from_report(build_report(
-            result, input_path=seq.name, source=None, masks=masks_kind or "none",
-            config=variant_config(config, variant), calib_given=seq.intrinsics is not None))
+        summary = clip_summary(result, name=seq.name, masks=masks_kind or "none", config=run_config,
+                               calib_given=seq.intrinsics is not None)
         row.update(global_shift_pct=summary["global_shift_pct"], support_p10=summary["support_p10"],
                    usable=clip_verdict(summary).usable)
         est = Trajectory(vo.timestamps[posed], vo.poses[posed])

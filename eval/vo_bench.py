@@ -27,10 +27,10 @@ from data_tools.repeats import KINDS as REPEAT_KINDS, shown_images, shown_order
 from data_tools.synthetic import SceneConfig, SyntheticScene
 from eval.mask_metrics import region_similarity
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
-from mona_vo.batch import clip_verdict, summary_from_report
+from mona_vo.batch import clip_verdict
 from mona_vo.errors import EvalError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
-from mona_vo.run import build_report
+from mona_vo.run import clip_summary
 
 
 @dataclass(frozen=True)
@@ -94,9 +94,8 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
         errors["status"] = f"failed: {exc}"
     n = len(frames)
     # The verdict `batch` would give this clip, from the report `run` would write.
-    report = build_report(result, input_path=f"generated/{variant}", source=None, masks=variant,
-                          config=config, calib_given=calib == "given")
-    summary = summary_from_report(report)
+    summary = clip_summary(result, name=f"generated/{variant}", masks=variant, config=config,
+                           calib_given=calib == "given")
     verdict = clip_verdict(summary)
     vo_seconds = sum(v for k, v in result.timings.items() if k.startswith("vo."))
     mask_seconds = sum(v for k, v in result.timings.items() if k.startswith("masks."))

@@ -194,15 +194,17 @@ def clip_verdict(summary: dict, config: VerdictConfig | None = None) -> Verdict:
     if segments is not None and segments > config.max_map_segments:
         reasons.append(f"{segments} map segments (> {config.max_map_segments}: tracking was lost, "
                        f"e.g. at a cut; no pose is measured across it)")
-    rmse = summary.get("reprojection_rmse_px")
-    if rmse is not None and math.isfinite(rmse) and rmse > config.max_reprojection_rmse_px:
+    # A number that was not measured (no bundle adjustment ran, an older report) is not held
+    # against the clip.
+    rmse = _finite(summary.get("reprojection_rmse_px"))
+    if rmse is not None and rmse > config.max_reprojection_rmse_px:
         reasons.append(f"reprojection RMSE {rmse:.2f} px (> {config.max_reprojection_rmse_px:g} px)")
-    shift = summary.get("global_shift_pct")
-    if shift is not None and math.isfinite(shift) and shift > config.max_global_shift_pct:
+    shift = _finite(summary.get("global_shift_pct"))
+    if shift is not None and shift > config.max_global_shift_pct:
         reasons.append(f"the global refinement moved the keyframes by {shift:.2f} % of their path "
                        f"(> {config.max_global_shift_pct:g} %: the streaming map was not consistent)")
-    support = summary.get("support_p10")
-    if support is not None and math.isfinite(support) and support < config.min_support_p10:
+    support = _finite(summary.get("support_p10"))
+    if support is not None and support < config.min_support_p10:
         reasons.append(f"a tenth of the poses rest on fewer than {support:.0f} points "
                        f"(< {config.min_support_p10:g})")
     return Verdict(not reasons, tuple(reasons))
@@ -225,8 +227,14 @@ def summary_from_report(report: dict) -> dict:
     }
 
 
+def _finite(value) -> float | None:
+    return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
+
+
 def _finite_or_none(value) -> float | None:
-    return round(float(value), 4) if isinstance(value, (int, float)) and math.isfinite(value) else None
+    """``value`` rounded to 4 decimals, as batch.csv holds it; None when it is not a finite number."""
+    v = _finite(value)
+    return None if v is None else round(v, 4)
 
 
 def judged(row: dict, config: VerdictConfig | None = None) -> dict:

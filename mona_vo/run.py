@@ -168,6 +168,16 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
     }
 
 
+def clip_summary(result, *, name: str, masks: str, config, calib_given: bool) -> dict:
+    """The numbers ``batch``'s verdict judges a run by (:func:`mona_vo.batch.summary_from_report`
+    of the report this run would write), for callers that keep no output folder (the benches,
+    the evaluation harness), so that they judge exactly what ``batch`` judges."""
+    from mona_vo.batch import summary_from_report
+
+    return summary_from_report(build_report(result, input_path=name, source=None, masks=masks,
+                                            config=config, calib_given=calib_given))
+
+
 def _overlay_summary(overlay) -> dict | None:
     """The burned-in overlay painted over (mona_vo.overlays): its share of the frame and the
     box [x0, y0, x1, y1] (frame pixels, exclusive ends) of each of its parts; None: none found."""
