@@ -117,6 +117,12 @@ class Tracker(ABC):
     def live(self) -> TrackUpdate:
         """The live tracks at the current frame."""
 
+    def move(self, ids: np.ndarray, points: np.ndarray) -> bool:
+        """Put live tracks at corrected (N, 2) pixels of the current frame (a caller that
+        measured them better, mona_vo.patch_align). Returns False, changing nothing, when the
+        back end cannot take corrections (its tracks are not chained frame to frame)."""
+        return False
+
 
 @TRACKERS.register("lk")
 class LKTracker(Tracker):
@@ -172,6 +178,11 @@ class LKTracker(Tracker):
         keep = ~np.isin(self._ids, ids)
         self._ids, self._pts, self._err = self._ids[keep], self._pts[keep], self._err[keep]
         self._vel = self._vel[keep]
+
+    def move(self, ids: np.ndarray, points: np.ndarray) -> bool:
+        _, i, j = np.intersect1d(self._ids, np.asarray(ids, np.int64), return_indices=True)
+        self._pts[i] = np.asarray(points, np.float32).reshape(-1, 2)[j]
+        return True
 
     def step(self, image: np.ndarray) -> TrackUpdate:
         # OpenCV's Python binding cannot take prebuilt pyramids, so each call builds its own.

@@ -46,6 +46,7 @@ from mona_vo.config import check_fields, setting
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose, pixels_in_mask
 from mona_vo.errors import ConfigError
 from mona_vo.geometry import reprojection_residuals
+from mona_vo.patch_align import Anchors, align_patches, rotation_jacobians
 from mona_vo.point_selection import adaptive_min_score, grid_points, texture_score
 from mona_vo.tracking import LKTracker, Tracker, to_gray
 from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose, rotation_only,
@@ -156,6 +157,18 @@ class VOConfig:
                                             # this x the keyframe's median, and above 0.02) is
                                             # dropped with its landmark (0: off)
     patch_half_px: int = setting(4, ge=1)   # half size of that patch, px
+    anchor_tracks: bool = setting(False)    # at each keyframe, fit every track's patch as first
+                                            # anchored (affine, mona_vo.patch_align) and move
+                                            # the track there, so frame-to-frame drift does
+                                            # not add up. Off: static scenes gain a third,
+                                            # slow creeps and Bonn's validation half lose;
+                                            # README
+    anchor_min_ncc: float = setting(0.8, ge=-1, le=1)  # ... when the fitted patch correlates
+                                            # with its first look at least this much
+    anchor_max_shift_px: float = setting(2.0, gt=0)  # ... and moves the track by at most this, px
+    anchor_half_px: int = setting(10, ge=1)  # half size of that patch, px (10: the tracker's
+                                            # 21 x 21 window; at 7, noisy frames fitted worse
+                                            # than six frame-to-frame steps)
     refine: str = setting("global", choices=("global", "none"))  # after the sliding window, one
                                             # bundle adjustment over all keyframes (global) or
                                             # none (streaming)
@@ -290,6 +303,9 @@ class VisualOdometry:
         self._probe: _Probe | None = None
         self._focal_fixed: float | None = None
         self._camera_known = intrinsics is not None if camera_known is None else bool(camera_known)
+        # Tracks are held to their first look only by a tracker that takes corrections.
+        self._anchors = Anchors(config.anchor_half_px) if config.anchor_tracks and self.tracker.move(
+            np.zeros(0, np.int64), np.zeros((0, 2))) else None
         self._last_kf_view = None   # (gray, track ids, uv, T_world_cam, intrinsics) of the
                                     # last keyframe made while tracking (_drop_dissimilar)
         self._speed_hint: float | None = None       # map units/frame before a re-initialisation
@@ -763,6 +779,7 @@ class VisualOdometry:
 
     def _make_keyframe(self, t, gray, obs: Observation, intr, mask, T_world_cam, n_inl,
                        bootstrapping: bool = False) -> None:
+        obs = self._to_anchors(gray, obs, T_world_cam, intr)
         t0 = time.perf_counter()
         m = self.map
         kf = m.keyframes
@@ -782,6 +799,9 @@ class VisualOdometry:
         full = Observation(np.concatenate([obs.ids, seed_ids]), np.concatenate([obs.uv, seed_uv]),
                            np.concatenate([obs.masked, np.zeros(len(seed_ids), bool)]))
         row = self._add_keyframe(t, T_world_cam, intr, full)
+        if self._anchors is not None:
+            self._anchors.keep(full.ids)
+            self._anchors.add(full.ids, full.uv, row, gray)
         if self.cfg.patch_dissimilarity > 0:
             self._last_kf_view = (gray, full.ids, full.uv, T_world_cam, intr)
         m.frames.write(t, FrameStatus.KEYFRAME, int(n_inl), ref_kf=row, T=np.eye(4))
@@ -789,6 +809,37 @@ class VisualOdometry:
         self._bundle_adjust(bootstrapping)
         while len(m.window) > self.cfg.window_keyframes:
             m.window.pop(0)   # the keyframe and its observations stay in the table
+
+    def _to_anchors(self, gray, obs: Observation, T_world_cam, intr) -> Observation:
+        """Every track with an anchor is fitted to its first look (mona_vo.patch_align) and
+        moved there, in this keyframe's observations and in the tracker, when the fit
+        converged, correlates at least ``anchor_min_ncc`` and moves it by at most
+        ``anchor_max_shift_px``. The patch's start deformation is the turn since the anchor's
+        keyframe (same map segment), so a rolled or panned patch need not be found by the fit."""
+        a = self._anchors
+        if a is None or not len(a.ids):
+            return obs
+        t0 = time.perf_counter()
+        _, ia, io = np.intersect1d(a.ids, obs.ids, return_indices=True)
+        kf = self.map.keyframes
+        deform = np.tile(np.eye(2), (len(ia), 1, 1))
+        for row in np.unique(a.rows[ia]):
+            if kf.segment[row] == self.map.segment:
+                sel = a.rows[ia] == row
+                R = (invert_pose(T_world_cam) @ kf.T_world_cam[row])[:3, :3]
+                H = intr.K @ R @ np.linalg.inv(kf.intrinsics(row).K)
+                deform[sel] = rotation_jacobians(H, a.uv[ia[sel]])
+        p, ncc, ok = align_patches(a.templates[ia], gray, obs.uv[io], deform, half=a.half)
+        h, w = gray.shape
+        ok &= (ncc >= self.cfg.anchor_min_ncc) & np.isfinite(p).all(axis=1)
+        ok &= np.linalg.norm(p - obs.uv[io], axis=1) <= self.cfg.anchor_max_shift_px
+        ok &= (p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)
+        uv = obs.uv.copy()
+        uv[io[ok]] = p[ok]
+        moved = np.any(uv != obs.uv, axis=1)
+        self.tracker.move(obs.ids[moved], uv[moved])
+        self.timings["anchoring"] += time.perf_counter() - t0
+        return Observation(obs.ids, uv, obs.masked)
 
     def _drop_dissimilar(self, gray, obs: Observation, T_world_cam, intr) -> Observation:
         """Tracks whose patch no longer looks as it did at the last keyframe are dropped with
