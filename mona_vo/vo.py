@@ -161,8 +161,7 @@ class VOConfig:
                                             # anchored (affine, mona_vo.patch_align) and move
                                             # the track there, so frame-to-frame drift does
                                             # not add up. Off: static scenes gain a third,
-                                            # slow creeps and Bonn's validation half lose;
-                                            # README
+                                            # slow creeps and the Bonn clip lose; README
     anchor_min_ncc: float = setting(0.8, ge=-1, le=1)  # ... when the fitted patch correlates
                                             # with its first look at least this much
     anchor_max_shift_px: float = setting(2.0, gt=0)  # ... and moves the track by at most this, px
