@@ -303,8 +303,9 @@ class VisualOdometry:
         self._focal_fixed: float | None = None
         self._camera_known = intrinsics is not None if camera_known is None else bool(camera_known)
         # Tracks are held to their first look only by a tracker that takes corrections.
-        self._anchors = Anchors(config.anchor_half_px) if config.anchor_tracks and self.tracker.move(
-            np.zeros(0, np.int64), np.zeros((0, 2))) else None
+        takes = config.anchor_tracks and self.tracker.move(np.zeros(0, np.int64),
+                                                           np.zeros((0, 2)))
+        self._anchors = Anchors(config.anchor_half_px) if takes else None
         self._last_kf_view = None   # (gray, track ids, uv, T_world_cam, intrinsics) of the
                                     # last keyframe made while tracking (_drop_dissimilar)
         self._speed_hint: float | None = None       # map units/frame before a re-initialisation
