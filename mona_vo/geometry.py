@@ -16,6 +16,10 @@ Reprojection
     ``reprojection_residuals(T_world_cam, X, uv, intr)``: (N, 2) observed minus projected pixels,
     NaN behind the camera; built on :func:`mona_vo.conventions.reproject`.
 
+Local affine map of a homography
+    ``homography_jacobians(H, uv)``: how H turns, scales and shears a small patch around each
+    pixel (for ``K_b R K_a^-1``, a camera's turn): the patch checks and fits of the VO.
+
 Similarity alignment
     Umeyama's closed form (1991) for the scale, rotation and translation that best map one set
     of 3-D points onto another: what evo's Sim(3) alignment computes, for the VO's own
@@ -119,3 +123,12 @@ def aligned_rms(src: np.ndarray, dst: np.ndarray) -> float:
     a, b = np.asarray(src, np.float64).reshape(-1, 3), np.asarray(dst, np.float64).reshape(-1, 3)
     s, R, t = align_similarity(a, b)
     return float(np.sqrt(np.mean(np.sum((s * a @ R.T + t - b) ** 2, axis=1))))
+
+
+def homography_jacobians(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) derivative of the homography ``H`` (3, 3) at the (N, 2) pixels ``uv``: the
+    affine map it applies to a small patch around each point."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    h = np.c_[uv, np.ones(len(uv))] @ np.asarray(H, np.float64).T
+    return (H[None, :2, :2] * h[:, 2, None, None]
+            - h[:, :2, None] * H[None, 2:3, :2]) / h[:, 2, None, None] ** 2

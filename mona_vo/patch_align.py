@@ -13,7 +13,8 @@ translation-only fit of a deformed patch is biased.
 2 x 2 deformation, with a gain and an offset for exposure) to the current image by Baker and
 Matthews' inverse-compositional Gauss-Newton, all tracks at once, started from where the
 tracker put the point and, when the camera's turn since the first look is known, from the
-local Jacobian of that rotation's homography (:func:`rotation_jacobians`). :class:`Anchors`
+local affine map of that rotation's homography
+(:func:`mona_vo.geometry.homography_jacobians`). :class:`Anchors`
 keeps each track's first patch. Used by the VO's option ``vo.anchor_tracks`` at each keyframe:
 on static seed 0 tracks 10 or more frames old go from 0.210 to 0.067 px median error
 (tests/test_vo.py); README, Tracks held to their first look.
@@ -29,22 +30,6 @@ import numpy as np
 def _sample(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     return cv2.remap(image, xs.astype(np.float32), ys.astype(np.float32), cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-
-
-def rotation_jacobians(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(N, 2, 2) derivative of the homography ``H`` (3, 3) at the (N, 2) pixels ``uv``: how a
-    small patch around each point is turned, scaled and sheared by H (for ``K R K^-1``, a
-    camera's turn)."""
-    uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    x = np.c_[uv, np.ones(len(uv))] @ H.T
-    s = x[:, 2]
-    px, py = x[:, 0] / s, x[:, 1] / s
-    J = np.empty((len(uv), 2, 2))
-    J[:, 0, 0] = (H[0, 0] - px * H[2, 0]) / s
-    J[:, 0, 1] = (H[0, 1] - px * H[2, 1]) / s
-    J[:, 1, 0] = (H[1, 0] - py * H[2, 0]) / s
-    J[:, 1, 1] = (H[1, 1] - py * H[2, 1]) / s
-    return J
 
 
 def _offsets(half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

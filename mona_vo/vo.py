@@ -45,8 +45,8 @@ from ba.sliding_window_ba import BAConfig, BAProblem, sliding_window_ba
 from mona_vo.config import check_fields, setting
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose, pixels_in_mask
 from mona_vo.errors import ConfigError
-from mona_vo.geometry import reprojection_residuals
-from mona_vo.patch_align import Anchors, align_patches, rotation_jacobians
+from mona_vo.geometry import homography_jacobians, reprojection_residuals
+from mona_vo.patch_align import Anchors, align_patches
 from mona_vo.point_selection import adaptive_min_score, grid_points, texture_score
 from mona_vo.tracking import LKTracker, Tracker, to_gray
 from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose, rotation_only,
@@ -835,7 +835,7 @@ class VisualOdometry:
                 sel = a.rows[ia] == row
                 R = (invert_pose(T_world_cam) @ kf.T_world_cam[row])[:3, :3]
                 H = intr.K @ R @ np.linalg.inv(kf.intrinsics(row).K)
-                deform[sel] = rotation_jacobians(H, a.uv[ia[sel]])
+                deform[sel] = homography_jacobians(H, a.uv[ia[sel]])
         p, ncc, ok = align_patches(a.templates[ia], gray, obs.uv[io], deform, half=a.half)
         h, w = gray.shape
         ok &= (ncc >= self.cfg.anchor_min_ncc) & np.isfinite(p).all(axis=1)
@@ -843,8 +843,7 @@ class VisualOdometry:
         ok &= (p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)
         uv = obs.uv.copy()
         uv[io[ok]] = p[ok]
-        moved = np.any(uv != obs.uv, axis=1)
-        self.tracker.move(obs.ids[moved], uv[moved])
+        self.tracker.move(obs.ids[io[ok]], p[ok])
         self.timings["anchoring"] += time.perf_counter() - t0
         return Observation(obs.ids, uv, obs.masked)
 

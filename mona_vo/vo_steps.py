@@ -12,7 +12,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose
-from mona_vo.geometry import aligned_rms, cauchy_dynamic_probability, reprojection_errors
+from mona_vo.geometry import (aligned_rms, cauchy_dynamic_probability, homography_jacobians,
+                              reprojection_errors)
 from mona_vo.tracking import LKTracker, track_forward_backward
 from mona_vo.two_view import pixel_homography, rotation_parallax_deg, triangulate
 
@@ -390,17 +391,16 @@ def patch_similarity(gray_a: np.ndarray, uv_a: np.ndarray, gray_b: np.ndarray, u
     b = np.asarray(gray_b, np.float32)
     out = np.full(len(uv_a), np.nan)
     c = np.array([half, half], np.float64)
+    # Local affine map of H at each p (image a -> b); patch pixel u of b's patch comes from
+    # p + A^-1 (u - c) in a.
+    jac = None if H_b_a is None else homography_jacobians(H_b_a, uv_a)
     for i, (p, q) in enumerate(zip(np.asarray(uv_a, np.float64), np.asarray(uv_b, np.float64))):
         pb = cv2.getRectSubPix(b, size, (float(q[0]), float(q[1]))).ravel()
         if H_b_a is None:
             pa = cv2.getRectSubPix(a, size, (float(p[0]), float(p[1]))).ravel()
         else:
-            # Local affine map of H at p (image a -> b); patch pixel u of b's patch comes from
-            # p + A^-1 (u - c) in a.
-            h = H_b_a @ np.array([p[0], p[1], 1.0])
-            J = (H_b_a[:2, :2] * h[2] - np.outer(h[:2], H_b_a[2, :2])) / h[2] ** 2
             try:
-                Ainv = np.linalg.inv(J)
+                Ainv = np.linalg.inv(jac[i])
             except np.linalg.LinAlgError:
                 continue
             M = np.hstack([Ainv, (p - Ainv @ c)[:, None]])

@@ -3,7 +3,8 @@ deformation from a camera's turn, the anchor table, and the tracker taking the c
 import cv2
 import numpy as np
 
-from mona_vo.patch_align import Anchors, align_patches, patch_templates, rotation_jacobians
+from mona_vo.geometry import homography_jacobians
+from mona_vo.patch_align import Anchors, align_patches, patch_templates
 from mona_vo.tracking import LKTracker, Tracker
 
 
@@ -51,12 +52,12 @@ def test_an_unrelated_patch_correlates_poorly():
     assert np.median(ncc) < 0.8
 
 
-def test_rotation_jacobians_are_the_homographys_derivative():
+def test_homography_jacobians_are_the_homographys_derivative():
     K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
     R = cv2.Rodrigues(np.array([0.03, -0.05, 0.2]))[0]
     H = K @ R @ np.linalg.inv(K)
     uv = _grid(320, 240, step=60)
-    J = rotation_jacobians(H, uv)
+    J = homography_jacobians(H, uv)
 
     def apply(x):
         q = np.c_[x, np.ones(len(x))] @ H.T
