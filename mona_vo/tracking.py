@@ -98,7 +98,11 @@ def track_forward_backward(prev: np.ndarray, nxt: np.ndarray, pts: np.ndarray, g
 
 
 class Tracker(ABC):
-    """Frame-to-frame point tracker with persistent track ids."""
+    """Frame-to-frame point tracker with persistent track ids. ``takes_corrections``: the back
+    end chains its tracks from frame to frame and :meth:`move` puts them where a caller measured
+    them better (False: ``move`` changes nothing)."""
+
+    takes_corrections = False
 
     @abstractmethod
     def step(self, image: np.ndarray) -> TrackUpdate:
@@ -119,8 +123,8 @@ class Tracker(ABC):
 
     def move(self, ids: np.ndarray, points: np.ndarray) -> bool:
         """Put live tracks at corrected (N, 2) pixels of the current frame (a caller that
-        measured them better, mona_vo.patch_align). Returns False, changing nothing, when the
-        back end cannot take corrections (its tracks are not chained frame to frame)."""
+        measured them better, mona_vo.patch_align). Returns ``takes_corrections``: False,
+        changing nothing, when the back end cannot take corrections."""
         return False
 
 
@@ -178,6 +182,8 @@ class LKTracker(Tracker):
         keep = ~np.isin(self._ids, ids)
         self._ids, self._pts, self._err = self._ids[keep], self._pts[keep], self._err[keep]
         self._vel = self._vel[keep]
+
+    takes_corrections = True
 
     def move(self, ids: np.ndarray, points: np.ndarray) -> bool:
         _, i, j = np.intersect1d(self._ids, np.asarray(ids, np.int64), return_indices=True)

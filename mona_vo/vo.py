@@ -304,8 +304,7 @@ class VisualOdometry:
         self._focal_fixed: float | None = None
         self._camera_known = intrinsics is not None if camera_known is None else bool(camera_known)
         # Tracks are held to their first look only by a tracker that takes corrections.
-        takes = config.anchor_tracks and self.tracker.move(np.zeros(0, np.int64),
-                                                           np.zeros((0, 2)))
+        takes = config.anchor_tracks and self.tracker.takes_corrections
         self._anchors = Anchors(config.anchor_half_px) if takes else None
         self._last_kf_view = None   # (gray, track ids, uv, T_world_cam, intrinsics) of the
                                     # last keyframe made while tracking (_drop_dissimilar)

@@ -100,3 +100,4 @@ def test_the_lk_tracker_takes_corrections_and_tracks_on_from_them():
         def live(self): ...
 
     assert Fixed().move(np.zeros(0, np.int64), np.zeros((0, 2))) is False
+    assert not Fixed.takes_corrections and LKTracker.takes_corrections
