@@ -144,6 +144,7 @@ class LKTracker(Tracker):
 
     GAIN_TOLERANCE = 0.01   # smaller brightness changes are left alone: a rescaled 8-bit image
                              # is requantised, which costs more than a 1 % change
+    takes_corrections = True
 
     def __init__(self, win_size: int = 21, levels: int = 3, fb_max_px: float = 0.7,
                  border_px: float = 4.0, iterations: int = 30, gain: bool = True):
@@ -182,8 +183,6 @@ class LKTracker(Tracker):
         keep = ~np.isin(self._ids, ids)
         self._ids, self._pts, self._err = self._ids[keep], self._pts[keep], self._err[keep]
         self._vel = self._vel[keep]
-
-    takes_corrections = True
 
     def move(self, ids: np.ndarray, points: np.ndarray) -> bool:
         _, i, j = np.intersect1d(self._ids, np.asarray(ids, np.int64), return_indices=True)
