@@ -167,6 +167,8 @@ class FrameContext:
     followed:       (h, w) bool, analysis resolution: the objects the accumulated evidence
                     follows in this frame (:func:`mona_vo.mask_evidence.regions`), or None when
                     no evidence is accumulated.
+    tracked_residual: (N,) float32 residual motion of each of ``tracked_points``, pixels per
+                    frame over its track window, or None.
     """
 
     frame_index: int
@@ -179,6 +181,7 @@ class FrameContext:
     prior_mask: np.ndarray | None = None
     dynamic_residual: np.ndarray | None = None
     followed: np.ndarray | None = None
+    tracked_residual: np.ndarray | None = None
 
 
 class Detector(ABC):

@@ -25,6 +25,9 @@ initialised from motion and prompts, per prompt region:
   (for points: the inner disks); with accumulated evidence (``FrameContext.followed``) only
   this frame's motion seeds and the carried mask within the objects the evidence follows, not
   the carried mask's spill beyond them (stop 32: DAVIS J 0.487 / 0.483 -> 0.499 / 0.486).
+  With ``fallback_static_frac`` > 0 (an option, off; README, Masks, stop 37) what comes back
+  also leaves out the pixels whose nearest tracked point is static (:func:`static_point_zone`):
+  the dense motion's bleed onto the background beside a mover.
 * point prompts (no boxes): points are grouped (single linkage, ``point_link_frac`` of the image
   diagonal) and each group is cut on its own. The mask stays within ``point_radius_frac`` (of the
   diagonal) of the points; disks of half that radius are probable foreground, the rest of the
@@ -55,6 +58,7 @@ from mona_vo.detection import (Boxes, FrameContext, box_pixel_ranges, group_poin
 from mona_vo.config import check_fields, setting
 from mona_vo.conventions import working_size
 from mona_vo.errors import ConfigError
+from mona_vo.mask_evidence import map_pixels
 from mona_vo.registry import Registry
 
 SEGMENTERS = Registry("segmenter")
@@ -104,6 +108,10 @@ class GrabCutConfig:
     seed: int = setting(0, ge=0)  # OpenCV RNG seed set before each GrabCut (reproducible)
     min_keep_frac: float = setting(0.3, ge=0, le=1)  # GrabCut keeping less than this share of a region's moving
                                      # (points: prompted) pixels is overruled: they are added
+    fallback_static_frac: float = setting(0.0, ge=0)  # boxes: what is added back leaves out the
+                                     # pixels whose nearest tracked point is static, its residual
+                                     # at most this x theta_t (0: off; static_point_zone)
+    fallback_static_reach: float = setting(0.03, gt=0)  # ... within this share of the diagonal
 
     def validate(self) -> None:
         check_fields(self, 'masks.grabcut.')
@@ -162,6 +170,37 @@ def refine_edges(image: np.ndarray, soft: np.ndarray, radius: int, eps: float) -
     out[r0:r1, c0:c1] = guided_filter(gray, np.ascontiguousarray(soft[r0:r1, c0:c1]), radius, eps,
                                       subsample=4)
     return out
+
+
+def static_point_zone(shape: tuple[int, int], points: np.ndarray, residual: np.ndarray,
+                      static_px: float, full_width: int, reach_frac: float) -> np.ndarray:
+    """(h, w) bool: the pixels of an image reduced to ``shape`` whose nearest tracked point,
+    within ``reach_frac`` of its diagonal, is static (residual at most ``static_px``, px per
+    frame). ``points``: (N, 2) full-resolution pixels of the frame's tracked points, an image
+    ``full_width`` pixels wide; ``residual``: (N,) their residual motion over the track window.
+
+    A dense flow smooths across a mover's outline, so its residual bleeds onto the background
+    beside the mover; a point track follows its own patch. Where the nearest track is static,
+    the dense motion is the bleed."""
+    h, w = shape
+    out = np.zeros((h, w), bool)
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    r = np.asarray(residual, np.float64).reshape(-1)
+    ok = np.isfinite(pts).all(axis=1) & np.isfinite(r)
+    if not ok.any():
+        return out
+    c = np.clip(map_pixels(pts[ok], full_width, w), 0, [w - 1, h - 1])
+    still = r[ok] <= static_px
+
+    def distance(sel):
+        if not sel.any():
+            return np.full((h, w), np.inf, np.float32)
+        img = np.full((h, w), 255, np.uint8)
+        img[c[sel, 1], c[sel, 0]] = 0
+        return cv2.distanceTransform(img, cv2.DIST_L2, 3)
+
+    d_still, d_other = distance(still), distance(~still)
+    return (d_still < d_other) & (d_still <= reach_frac * np.hypot(w, h))
 
 
 @SEGMENTERS.register("grabcut")
@@ -225,12 +264,13 @@ class GrabCutSegmenter(Segmenter):
 
     # -- prompts -----------------------------------------------------------------------------
     def _box_region(self, small, box_s, mm, theta, prior=None, pts_s=None, whole=False,
-                    followed=None):
+                    followed=None, static=None):
         """Mask (small size) of one box given in small-image pixel coordinates; ``prior`` (small
         size bool, or None) the previous mask carried here, ``pts_s`` (N, 2) the dynamic points
         in small-image pixels (or None); ``whole``: the box is an object detector's, around a
         whole object (module docstring); ``followed`` (small size bool, or None) the objects the
-        accumulated evidence follows."""
+        accumulated evidence follows; ``static`` (small size bool, or None) where the nearest
+        tracked point is static (:func:`static_point_zone`): not added back."""
         h, w = small.shape[:2]
         cfg = self.config
         bw, bh = box_s[2] - box_s[0], box_s[3] - box_s[1]
@@ -288,6 +328,10 @@ class GrabCutSegmenter(Segmenter):
                 # blob several times his size, kept less than min_keep_frac of it, and the blob
                 # came back).
                 fallback = now | (seed & followed[r0:r1, c0:c1])
+            if static is not None:
+                # GrabCut kept too little, so the motion comes back; not its bleed onto the
+                # background, where the point tracks say nothing moved.
+                fallback = fallback & ~static[r0:r1, c0:c1]
         else:
             fallback = np.zeros(init.shape, bool)
             fallback[inner] = True
@@ -347,13 +391,21 @@ class GrabCutSegmenter(Segmenter):
             if context is not None and len(context.dynamic_points):
                 d = np.asarray(context.dynamic_points, np.float64).reshape(-1, 2)
                 dyn = np.stack([(d[:, 0] + 0.5) * sx - 0.5, (d[:, 1] + 0.5) * sy - 0.5], axis=1)
+            static = None
+            if (cfg.fallback_static_frac > 0 and context is not None
+                    and context.tracked_points is not None
+                    and context.tracked_residual is not None):
+                static = static_point_zone((h, w), context.tracked_points,
+                                           context.tracked_residual,
+                                           cfg.fallback_static_frac * context.theta_t, W,
+                                           cfg.fallback_static_reach)
             order = np.argsort(-np.asarray(boxes.score))[:cfg.max_regions]
             whole = ~boxes.from_motion
             for b, object_box in zip(np.asarray(boxes.xyxy, np.float64)[order], whole[order]):
                 bs = np.array([(b[0] + 0.5) * sx - 0.5, (b[1] + 0.5) * sy - 0.5,
                                (b[2] + 0.5) * sx - 0.5, (b[3] + 0.5) * sy - 0.5])
                 acc |= self._box_region(small, bs, mm, theta, prior, dyn, bool(object_box),
-                                        followed)
+                                        followed, static)
         else:
             ps = np.stack([(pts[:, 0] + 0.5) * sx - 0.5, (pts[:, 1] + 0.5) * sy - 0.5], axis=1)
             link = cfg.point_link_frac * np.hypot(w, h)

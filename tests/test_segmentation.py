@@ -87,3 +87,42 @@ def test_a_carried_mask_that_spilt_is_not_restored_beyond_the_objects_followed()
     assert _iou(segment(followed), obj) > 0.85
     # Without accumulated evidence the carried mask is all there is to go on: it stays.
     assert segment(None)[blob].mean() > 0.9
+
+
+def test_what_the_fallback_adds_back_leaves_out_the_bleed_where_the_tracks_are_static():
+    """The dense motion bleeds across the object's outline onto the background: a blob twice
+    its width. Where GrabCut keeps too little, the motion comes back (here always: the
+    'motion' method is the fallback itself); with ``fallback_static_frac`` not where the
+    nearest point track is static -- the tracks on the object move, those beside it do not."""
+    img, obj = _scene()
+    motion = np.zeros((H, W), np.float32)
+    motion[10:110, 70:190] = 3.0                        # the object (30:90, 100:160) and its bleed
+    box = Boxes(np.array([[70, 10, 189, 109]], np.float32), np.ones(1, np.float32),
+                np.array([MOTION_LABEL]))
+    pts, res = [], []
+    for y in range(14, 110, 12):
+        for x in range(74, 190, 12):
+            inside = 100 <= x < 160 and 30 <= y < 90
+            pts.append((x, y))
+            res.append(3.0 if inside else 0.05)
+    context = FrameContext(0, motion, 1.0, 1.0, np.zeros((0, 2), np.float32), 1.0,
+                           tracked_points=np.asarray(pts, np.float32),
+                           tracked_residual=np.asarray(res, np.float32))
+
+    def segment(frac):
+        cfg = GrabCutConfig(work_size=W, refine_radius_px=0, dilate_px=0, method="motion",
+                            fallback_static_frac=frac, fallback_static_reach=0.05)
+        return GrabCutSegmenter(cfg).segment(img, box, context=context)
+
+    before, after = segment(0.0), segment(0.5)
+    assert _iou(before, obj) < 0.4                      # the bleed comes back with the object
+    assert _iou(after, obj) > 0.75 and after[obj].mean() > 0.9     # the grid: 12 px apart
+
+
+def test_static_point_zone_is_where_the_nearest_track_is_static_within_reach():
+    from mona_vo.segmentation import static_point_zone
+    pts = np.array([[10.5, 50.5], [90.5, 50.5]])        # full image 400 wide, map 100 x 100
+    res = np.array([0.05, 3.0])
+    zone = static_point_zone((100, 100), pts * 4, res, 0.5, 400, 0.2)
+    assert zone[50, 2:15].all() and not zone[50, 85:95].any()
+    assert not static_point_zone((100, 100), pts * 4, res, 0.5, 400, 0.01)[50, 20]
