@@ -565,7 +565,7 @@ class MonaMasker:
         sec["motion_map"] += t1b - t0
         context = FrameContext(self._index[p], mmap, a.theta, a.m_t, dyn_xy, a.motion_theta,
                                dyn.points, prior, dyn.residual[dyn.is_dynamic], found,
-                               dyn.residual)
+                               tracked_residual=dyn.residual)
         boxes = Boxes.empty() if cfg.prompt == "points" else self.detector.detect(image, context)
         t2 = time.perf_counter()
         filt = None

@@ -58,7 +58,6 @@ from mona_vo.detection import (Boxes, FrameContext, box_pixel_ranges, group_poin
 from mona_vo.config import check_fields, setting
 from mona_vo.conventions import working_size
 from mona_vo.errors import ConfigError
-from mona_vo.mask_evidence import map_pixels
 from mona_vo.registry import Registry
 
 SEGMENTERS = Registry("segmenter")
@@ -172,12 +171,19 @@ def refine_edges(image: np.ndarray, soft: np.ndarray, radius: int, eps: float) -
     return out
 
 
+def scaled_points(points: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """(N, 2) float64 pixels x, y of an image ``sx`` (``sy``) times the size of the one the (N, 2)
+    ``points`` are in: pixel edges map as ``x_small + 0.5 = (x + 0.5) * s``."""
+    p = np.asarray(points, np.float64).reshape(-1, 2)
+    return np.stack([(p[:, 0] + 0.5) * sx - 0.5, (p[:, 1] + 0.5) * sy - 0.5], axis=1)
+
+
 def static_point_zone(shape: tuple[int, int], points: np.ndarray, residual: np.ndarray,
-                      static_px: float, full_width: int, reach_frac: float) -> np.ndarray:
-    """(h, w) bool: the pixels of an image reduced to ``shape`` whose nearest tracked point,
-    within ``reach_frac`` of its diagonal, is static (residual at most ``static_px``, px per
-    frame). ``points``: (N, 2) full-resolution pixels of the frame's tracked points, an image
-    ``full_width`` pixels wide; ``residual``: (N,) their residual motion over the track window.
+                      static_px: float, reach_frac: float) -> np.ndarray:
+    """(h, w) bool: the pixels of an image of ``shape`` whose nearest tracked point, within
+    ``reach_frac`` of its diagonal, is static (residual at most ``static_px``, px per frame).
+    ``points``: (N, 2) pixels of the frame's tracked points in that image
+    (:func:`scaled_points`); ``residual``: (N,) their residual motion over the track window.
 
     A dense flow smooths across a mover's outline, so its residual bleeds onto the background
     beside the mover; a point track follows its own patch. Where the nearest track is static,
@@ -189,7 +195,7 @@ def static_point_zone(shape: tuple[int, int], points: np.ndarray, residual: np.n
     ok = np.isfinite(pts).all(axis=1) & np.isfinite(r)
     if not ok.any():
         return out
-    c = np.clip(map_pixels(pts[ok], full_width, w), 0, [w - 1, h - 1])
+    c = np.clip(np.round(pts[ok]).astype(np.int64), 0, [w - 1, h - 1])
     still = r[ok] <= static_px
 
     def distance(sel):
@@ -389,25 +395,23 @@ class GrabCutSegmenter(Segmenter):
             followed = self._at_size(context.followed if context is not None else None, w, h)
             dyn = None
             if context is not None and len(context.dynamic_points):
-                d = np.asarray(context.dynamic_points, np.float64).reshape(-1, 2)
-                dyn = np.stack([(d[:, 0] + 0.5) * sx - 0.5, (d[:, 1] + 0.5) * sy - 0.5], axis=1)
+                dyn = scaled_points(context.dynamic_points, sx, sy)
             static = None
             if (cfg.fallback_static_frac > 0 and context is not None
                     and context.tracked_points is not None
                     and context.tracked_residual is not None):
-                static = static_point_zone((h, w), context.tracked_points,
+                static = static_point_zone((h, w), scaled_points(context.tracked_points, sx, sy),
                                            context.tracked_residual,
-                                           cfg.fallback_static_frac * context.theta_t, W,
+                                           cfg.fallback_static_frac * context.theta_t,
                                            cfg.fallback_static_reach)
             order = np.argsort(-np.asarray(boxes.score))[:cfg.max_regions]
             whole = ~boxes.from_motion
             for b, object_box in zip(np.asarray(boxes.xyxy, np.float64)[order], whole[order]):
-                bs = np.array([(b[0] + 0.5) * sx - 0.5, (b[1] + 0.5) * sy - 0.5,
-                               (b[2] + 0.5) * sx - 0.5, (b[3] + 0.5) * sy - 0.5])
+                bs = scaled_points(b.reshape(2, 2), sx, sy).ravel()
                 acc |= self._box_region(small, bs, mm, theta, prior, dyn, bool(object_box),
                                         followed, static)
         else:
-            ps = np.stack([(pts[:, 0] + 0.5) * sx - 0.5, (pts[:, 1] + 0.5) * sy - 0.5], axis=1)
+            ps = scaled_points(pts, sx, sy)
             link = cfg.point_link_frac * np.hypot(w, h)
             for idx in group_points(ps, link)[:cfg.max_regions]:
                 acc |= self._point_region(small, ps[idx])

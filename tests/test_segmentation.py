@@ -121,8 +121,8 @@ def test_what_the_fallback_adds_back_leaves_out_the_bleed_where_the_tracks_are_s
 
 def test_static_point_zone_is_where_the_nearest_track_is_static_within_reach():
     from mona_vo.segmentation import static_point_zone
-    pts = np.array([[10.5, 50.5], [90.5, 50.5]])        # full image 400 wide, map 100 x 100
+    pts = np.array([[10.0, 50.0], [90.0, 50.0]])        # pixels of the 100 x 100 image
     res = np.array([0.05, 3.0])
-    zone = static_point_zone((100, 100), pts * 4, res, 0.5, 400, 0.2)
+    zone = static_point_zone((100, 100), pts, res, 0.5, 0.2)
     assert zone[50, 2:15].all() and not zone[50, 85:95].any()
-    assert not static_point_zone((100, 100), pts * 4, res, 0.5, 400, 0.01)[50, 20]
+    assert not static_point_zone((100, 100), pts, res, 0.5, 0.01)[50, 20]
