@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -40,20 +40,37 @@ DYNAMIC_PRESETS = ("one-large", "several", "fast-rotation")
 SYNTHETIC_MODES = ("boxes", "gt-boxes", "gt-detector")
 
 
+class _Shown(NamedTuple):
+    """A generated frame as the focal-length estimate reads frames (``.image``)."""
+
+    index: int
+    image: np.ndarray
+
+
 def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                    seeds: Sequence[int] = (0, 1, 2), n_frames: int = 30, width: int = 1024,
                    height: int = 436, config: MaskConfig | None = None,
-                   use_intrinsics: bool = False, mode: str = "boxes") -> list[dict]:
+                   use_intrinsics: bool = False, mode: str = "boxes", calib: str = "estimate",
+                   pipeline=None) -> list[dict]:
     """One row per (preset, seed): J (mean IoU), F, false-positive area fraction, mask and GT area
-    fractions, frames. ``use_intrinsics`` passes the scene's true intrinsics to the masker
-    (default: the masker's uncalibrated guess, as for an online video). ``mode``: 'boxes' the
+    fractions, frames. The masker's camera: ``use_intrinsics`` passes the scene's true
+    intrinsics; else ``calib`` 'estimate' (default) the focal length `mona-vo masks` and `run`
+    estimate from the first frames, as the product's masks get it
+    (:func:`mona_vo.pipeline.camera_ahead` with ``pipeline``'s calibration settings, a
+    PipelineConfig, default its defaults), or 'guess' its ``assumed_hfov_deg`` guess (the
+    bench's camera before stop 38). Rows of the method carry ``focal_error_pct``, the camera's
+    focal length against the scene's, per cent. ``mode``: 'boxes' the
     method; 'gt-boxes' the segmenter alone, prompted with the true masks' part boxes
     (:func:`gt_box_masks`); 'gt-detector' the method with :class:`TrueBoxDetector`."""
     if mode not in SYNTHETIC_MODES:
         raise ValueError(f"mode {mode!r}: one of {', '.join(SYNTHETIC_MODES)}")
+    if calib not in ("guess", "estimate"):
+        raise ValueError(f"calib {calib!r}: one of guess, estimate")
     from data_tools.synthetic import SceneConfig, SyntheticScene
+    from mona_vo.pipeline import PipelineConfig, camera_ahead
 
     config = config or MaskConfig()
+    pipeline = pipeline or PipelineConfig()
     rows = []
     for preset in presets:
         for seed in seeds:
@@ -67,7 +84,17 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                     gts[i] = f.mask
                     yield i, f.image
 
-            intrinsics = scene.intrinsics if use_intrinsics else None
+            intrinsics, extra = None, {}
+            if mode != "gt-boxes":      # the true-box prompts need no camera
+                if use_intrinsics:
+                    intrinsics = scene.intrinsics
+                elif calib == "estimate":
+                    head = (_Shown(i, scene.render(i).image)
+                            for i in range(min(len(scene), pipeline.calibration.frames)))
+                    _, _, intrinsics = camera_ahead(head, pipeline, width, height)
+                else:
+                    intrinsics = pipeline.guessed_intrinsics(width, height)
+                extra = {"focal_error_pct": 100.0 * (intrinsics.fx / scene.intrinsics.fx - 1)}
             if mode == "gt-boxes":
                 images = [image for _, image in frames()]
                 truth = [gts[i] for i in range(len(images))]
@@ -88,7 +115,7 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
             rows.append({"preset": preset, "seed": seed, "frames": len(J),
                          "J": float(np.mean(J)), "F": float(np.mean(F)),
                          "fp_area": float(np.mean(fp)), "mask_area": float(np.mean(area)),
-                         "gt_area": float(np.mean(gt_area))})
+                         "gt_area": float(np.mean(gt_area)), **extra})
     return rows
 
 
@@ -318,8 +345,9 @@ def main(argv: Sequence[str] | None = None) -> None:
                         help="DAVIS prompt modes: boxes,points,raw-boxes,gt-boxes,gt-detector (the "
                              "generated scenes: one of boxes, gt-boxes, gt-detector)")
     parser.add_argument("--calib", choices=("guess", "estimate"), default="estimate",
-                        help="DAVIS: the masker's camera, the focal length `mona-vo masks` and "
-                             "`run` estimate (default) or the 60-degree field-of-view guess")
+                        help="the masker's camera, DAVIS and generated scenes: the focal length "
+                             "`mona-vo masks` and `run` estimate (default) or the 60-degree "
+                             "field-of-view guess")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one pipeline config value, e.g. --set "
                              "masks.evidence.decay=0.7 (repeatable; as `mona-vo masks --set`)")
@@ -353,7 +381,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                          f"{', '.join(SYNTHETIC_MODES)}")
         rows = synthetic_rows(presets=tuple(args.presets.split(",")), seeds=seeds,
                               n_frames=args.frames, width=w, height=h, config=config,
-                              mode=args.modes)
+                              mode=args.modes, calib=args.calib, pipeline=pipeline)
         print("\n== synthetic scenes, per seed ==")
         print(format_table(rows))
         print("\n== synthetic scenes, per preset (J = mean IoU; static: fp_area) ==")

@@ -337,7 +337,7 @@ def test_seeded_evidence_finds_slow_movers_the_frame_threshold_misses_and_no_sta
     cfg = MaskConfig()
     seeded = dataclasses.replace(cfg, evidence=dataclasses.replace(cfg.evidence,
                                                                    seeded_noise_factor=6.0))
-    kw = dict(n_frames=24, width=640, height=272)
+    kw = dict(n_frames=24, width=640, height=272, calib="guess")  # the camera it was measured on
     base = synthetic_rows(("mixed",), (4,), config=cfg, **kw)[0]
     grown = synthetic_rows(("mixed",), (4,), config=seeded, **kw)[0]
     assert grown["J"] > base["J"] + 0.2
