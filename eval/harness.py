@@ -13,6 +13,11 @@ layout of the paper's Table 1). A run whose result.json holds the same config ha
 is skipped when the command is repeated; failed runs are retried; one failing run never stops the
 others. A sequence with poses for fewer than 80 % of its frames counts as failed (ParticleSfM's
 rule) and is reported, not dropped.
+
+Parts (``parts``, the commands' ``--parts NAME=A:B``): each run is also scored on rows A to B-1
+of its trajectory, each part aligned alone (as ``mona-vo eval traj --frames A:B``), so a tuning
+part and a validation part of one sequence are reported apart, in every table and over the
+draws. Scoring reads the written trajectory, so parts can be added to finished runs.
 """
 from __future__ import annotations
 
@@ -31,11 +36,11 @@ import numpy as np
 
 from data_tools.atomic import write_text_atomic
 from data_tools.run_outputs import sigint_deferred
-from data_tools.tum import write_tum_trajectory
+from data_tools.tum import read_tum_trajectory, write_tum_trajectory
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
 from mona_vo.batch import clip_verdict
 from mona_vo.config import apply_overrides, to_dict
-from mona_vo.errors import ConfigError, MonaVoError
+from mona_vo.errors import ConfigError, EvalError, MonaVoError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 from mona_vo.run import clip_summary
 
@@ -172,17 +177,67 @@ def _job(args):
     return run_one(seq, variant, config, run_dir, chash)
 
 
+def parse_parts(items: Iterable[str]) -> dict[str, tuple[int, int]]:
+    """``--parts`` values ``NAME=A:B`` (repeatable, or comma-separated) -> {name: (A, B)}; a
+    malformed one is a ConfigError naming the option."""
+    parts: dict[str, tuple[int, int]] = {}
+    for item in (x.strip() for text in items for x in text.split(",") if x.strip()):
+        name, eq, rng = item.partition("=")
+        a, colon, b = rng.partition(":")
+        try:
+            lo, hi = int(a), int(b)
+        except ValueError:
+            lo = hi = -1
+        if not eq or not name.strip() or not colon or lo < 0 or hi - lo < 3:
+            raise ConfigError(f"--parts expects NAME=A:B with 0 <= A and at least 3 rows, e.g. "
+                              f"--parts tune=0:225, got '{item}'")
+        if name.strip() in parts:
+            raise ConfigError(f"--parts: part '{name.strip()}' is given twice")
+        parts[name.strip()] = (lo, hi)
+    return parts
+
+
+def score_parts(seq: EvalSequence, trajectory: str | Path,
+                parts: dict[str, tuple[int, int]]) -> dict[str, float | None]:
+    """ATE (m) of each part (rows A to B-1 of the written trajectory, aligned alone, as
+    ``mona-vo eval traj --frames A:B`` scores them); None where the run has fewer rows, or the
+    part cannot be scored (a rotation-only part, too few matched poses)."""
+    t, T = read_tum_trajectory(trajectory)
+    out: dict[str, float | None] = {}
+    for name, (lo, hi) in parts.items():
+        out[name] = None
+        if hi <= len(t):
+            try:
+                m = score_trajectory(seq.gt, Trajectory(t[lo:hi], T[lo:hi]), max_diff=seq.max_diff)
+            except EvalError:
+                continue
+            if not isinstance(m, RotationMetrics):
+                out[name] = float(m.ate)
+    return out
+
+
 def evaluate(sequences: list[EvalSequence], variants: list[str], out_dir: str | Path, *,
              config: PipelineConfig | None = None, workers: int = 1, extra_hash: dict | None = None,
              progress: bool = True, method_names: dict[str, str] | None = None,
-             address: str | None = None) -> list[dict]:
+             address: str | None = None, parts: dict[str, tuple[int, int]] | None = None
+             ) -> list[dict]:
     """Run every (sequence, variant) not already done, then write the tables. Returns all rows.
     ``address``: run them on Ray, one task per run ("local": an embedded local Ray; "auto" or
-    HOST:PORT: a cluster), as ``mona-vo batch`` does; None: here, ``workers`` processes."""
+    HOST:PORT: a cluster), as ``mona-vo batch`` does; None: here, ``workers`` processes.
+    ``parts``: {name: (A, B)}, each run's ATE on those rows too (module docstring), in the
+    rows' ``parts``."""
     config = config or PipelineConfig()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows: dict[tuple[str, str], dict] = {}
+    by_name = {seq.name: seq for seq in sequences}
+
+    def scored(row):
+        if parts and row.get("status") == "ok":
+            path = out_dir / row["variant"] / row["sequence"] / "trajectory.txt"
+            row = {**row, "parts": score_parts(by_name[row["sequence"]], path, parts)}
+        return row
+
     todo = []
     for seq in sequences:
         for variant in variants:
@@ -190,7 +245,7 @@ def evaluate(sequences: list[EvalSequence], variants: list[str], out_dir: str | 
             chash = config_hash(variant_config(config, variant), seq, variant, extra_hash or {})
             done = load_done(run_dir, chash)
             if done is not None:
-                rows[(seq.name, variant)] = {**done, "skipped": True}
+                rows[(seq.name, variant)] = scored({**done, "skipped": True})
             else:
                 run_dir.mkdir(parents=True, exist_ok=True)
                 todo.append((seq, variant, config, run_dir, chash))
@@ -201,6 +256,7 @@ def evaluate(sequences: list[EvalSequence], variants: list[str], out_dir: str | 
         bar = tqdm(total=len(todo), desc="runs", unit="run", leave=False)
 
     def finished(row):
+        row = scored(row)
         rows[(row["sequence"], row["variant"])] = row
         write_tables(out_dir, _ordered(rows, sequences, variants), method_names)
         if bar is not None:
@@ -257,18 +313,31 @@ def summarize(rows: list[dict]) -> list[dict]:
         def mean(key):
             vals = [r[key] for r in ok if r.get(key) is not None]
             return float(np.mean(vals)) if vals else None
+        names = dict.fromkeys(k for r in ok for k in (r.get("parts") or {}))
+        part_means = {}
+        for name in names:
+            vals = [r["parts"][name] for r in ok if (r.get("parts") or {}).get(name) is not None]
+            part_means[name] = float(np.mean(vals)) if vals else None
         out.append({"variant": variant, "sequences": len(sel), "ok": len(ok),
                     "failed": len(sel) - len(ok), "ate": mean("ate"), "rpe_trans": mean("rpe_trans"),
-                    "rpe_rot_deg": mean("rpe_rot_deg"), "ate_percent_of_path": mean("ate_percent_of_path")})
+                    "rpe_rot_deg": mean("rpe_rot_deg"), "ate_percent_of_path": mean("ate_percent_of_path"),
+                    **({"parts": part_means} if part_means else {})})
     return out
 
 
+def _part_names(rows: list[dict]) -> list[str]:
+    return list(dict.fromkeys(k for r in rows for k in (r.get("parts") or {})))
+
+
 def write_tables(out_dir: Path, rows: list[dict], method_names: dict[str, str] | None = None) -> None:
+    names = _part_names(rows)
+    columns = COLUMNS + tuple(f"ate_{n}" for n in names)
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=COLUMNS, extrasaction="ignore")
+    writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
     writer.writeheader()
     for r in rows:
-        writer.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in COLUMNS})
+        flat = {**r, **{f"ate_{n}": v for n, v in (r.get("parts") or {}).items()}}
+        writer.writerow({k: ("" if flat.get(k) is None else flat.get(k)) for k in columns})
     write_text_atomic(out_dir / "results.csv", buf.getvalue())
     clean = [{k: v for k, v in r.items() if k not in ("traceback", "skipped")} for r in rows]
     summary = summarize(rows)
@@ -285,18 +354,26 @@ def markdown_table(summary: list[dict], rows: list[dict], method_names: dict[str
     names = {"none": "VO, no masks", "mona": "MONA + VO (filtered boxes)",
              "mona-points": "MONA + VO, points-only prompts", "mona-raw-boxes": "MONA + VO, raw boxes",
              "gt": "VO + ground-truth masks", **(method_names or {})}
-    lines = ["| Method | ATE (m) | RPE trans. (m) | RPE rot. (deg) | sequences ok / failed |",
-             "|---|---|---|---|---|"]
+    parts = _part_names(rows)
+    head = "".join(f" ATE {p} (m) |" for p in parts)
+    rule = "---|" * len(parts)
+    lines = ["| Method | ATE (m) | RPE trans. (m) | RPE rot. (deg) | sequences ok / failed |" + head,
+             "|---|---|---|---|---|" + rule]
     for s in summary:
+        cells = "".join(f" {_fmt((s.get('parts') or {}).get(p))} |" for p in parts)
         lines.append(f"| {names.get(s['variant'], s['variant'])} | {_fmt(s['ate'])} | "
-                     f"{_fmt(s['rpe_trans'])} | {_fmt(s['rpe_rot_deg'])} | {s['ok']} / {s['failed']} |")
+                     f"{_fmt(s['rpe_trans'])} | {_fmt(s['rpe_rot_deg'])} | {s['ok']} / {s['failed']} |"
+                     + cells)
     lines += ["", "Mean over the sequences whose run succeeded (poses for >= 80 % of frames). "
               "ATE: translation RMSE after Sim(3) alignment; RPE: delta 1 frame, after the same "
-              "alignment (evo's numbers).", "", "| sequence | variant | status | ATE | RPE trans | RPE rot |",
-              "|---|---|---|---|---|---|"]
+              "alignment (evo's numbers)."
+              + (" A part's ATE: its rows of the trajectory, aligned alone." if parts else ""),
+              "", "| sequence | variant | status | ATE | RPE trans | RPE rot |" + head,
+              "|---|---|---|---|---|---|" + rule]
     for r in rows:
+        cells = "".join(f" {_fmt((r.get('parts') or {}).get(p), 4)} |" for p in parts)
         lines.append(f"| {r['sequence']} | {r['variant']} | {r.get('status')} | {_fmt(r.get('ate'), 4)} | "
-                     f"{_fmt(r.get('rpe_trans'), 4)} | {_fmt(r.get('rpe_rot_deg'))} |")
+                     f"{_fmt(r.get('rpe_trans'), 4)} | {_fmt(r.get('rpe_rot_deg'))} |" + cells)
     warned = [r for r in rows if r.get("warning")]
     if warned:
         lines += [""] + [f"Warning, {r['sequence']} [{r['variant']}]: {r['warning']}." for r in warned]
@@ -363,7 +440,14 @@ def summarize_draws(by_draw: dict[str, list[dict]]) -> list[dict]:
             ok = r.get("status") == "ok"
             s["ate"][name] = r.get("ate") if ok else None
             s["rpe_rot_deg"][name] = r.get("rpe_rot_deg") if ok else None
+            for part, v in (r.get("parts") or {}).items():
+                s.setdefault("parts", {}).setdefault(part, {"ate": {}})["ate"][name] = \
+                    v if ok else None
     for s in out.values():
+        for p in (s.get("parts") or {}).values():
+            vals = [v for v in p["ate"].values() if v is not None]
+            p.update(ok=len(vals), ate_mean=float(np.mean(vals)) if vals else None,
+                     ate_median=float(np.median(vals)) if vals else None)
         ate = [v for v in s["ate"].values() if v is not None]
         rot = [v for v in s["rpe_rot_deg"].values() if v is not None]
         s.update(draws=len(s["ate"]), ok=len(ate),
@@ -373,6 +457,40 @@ def summarize_draws(by_draw: dict[str, list[dict]]) -> list[dict]:
                  ate_max=float(np.max(ate)) if ate else None,
                  rpe_rot_mean=float(np.mean(rot)) if rot else None)
     return list(out.values())
+
+
+def compare_draws(base: list[dict], new: list[dict]) -> list[dict]:
+    """Paired comparison of two draws summaries (``draws.json``'s ``summary``: the same command
+    before and after a change): per sequence, variant and part ('all' for the whole run) the
+    draws both ran, their means, the mean paired difference (new - base, m) with its standard
+    error, and in how many draws the new run is lower. On a chaotic sequence the draws move
+    both ways, so a difference within about two standard errors is no difference."""
+    def series(s):
+        out = {"all": s["ate"]}
+        out.update({p: v["ate"] for p, v in (s.get("parts") or {}).items()})
+        return out
+
+    old = {(s["sequence"], s["variant"]): series(s) for s in base}
+    rows = []
+    for s in new:
+        key = (s["sequence"], s["variant"])
+        if key not in old:
+            continue
+        for part, ate in series(s).items():
+            prev = old[key].get(part, {})
+            both = [d for d in ate if ate[d] is not None and prev.get(d) is not None]
+            if not both:
+                continue
+            a = np.array([prev[d] for d in both])
+            b = np.array([ate[d] for d in both])
+            diff = b - a
+            se = float(np.std(diff, ddof=1) / np.sqrt(len(diff))) if len(diff) > 1 else None
+            rows.append({"sequence": key[0], "variant": key[1], "part": part, "draws": len(both),
+                         "base_mean": float(a.mean()), "new_mean": float(b.mean()),
+                         "base_median": float(np.median(a)), "new_median": float(np.median(b)),
+                         "diff_mean": float(diff.mean()), "diff_se": se,
+                         "lower": int(np.sum(diff < 0))})
+    return rows
 
 
 def write_draws(out_dir: Path, by_draw: dict[str, list[dict]]) -> None:
@@ -386,4 +504,15 @@ def write_draws(out_dir: Path, by_draw: dict[str, list[dict]]) -> None:
                      f"{_fmt(s['ate_min'], 4)} | {_fmt(s['ate_max'], 4)} | {_fmt(s['rpe_rot_mean'])} |")
     lines += ["", "ATE in metres, one run per draw (`draws/<key=value>/`): "
               + ", ".join(f"`{n}`" for n in by_draw) + "."]
+    parted = [s for s in summary if s.get("parts")]
+    if parted:
+        lines += ["", "Per part (rows of each trajectory, aligned alone), ATE in metres, each draw:", "",
+                  "| sequence | variant | part | draws ok | mean | median | " +
+                  " | ".join(f"`{n}`" for n in by_draw) + " |",
+                  "|---|---|---|---|---|---|" + "---|" * len(by_draw)]
+        for s in parted:
+            for part, p in s["parts"].items():
+                lines.append(f"| {s['sequence']} | {s['variant']} | {part} | {p['ok']} / {len(p['ate'])} | "
+                             f"{_fmt(p['ate_mean'], 4)} | {_fmt(p['ate_median'], 4)} | " +
+                             " | ".join(_fmt(p["ate"].get(n), 4) for n in by_draw) + " |")
     write_text_atomic(Path(out_dir) / "draws.md", "\n".join(lines) + "\n")

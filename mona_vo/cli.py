@@ -11,9 +11,10 @@ import json
 import logging
 import math
 import sys
+from pathlib import Path
 
 from mona_vo import __version__
-from mona_vo.errors import ConfigError, MonaVoError
+from mona_vo.errors import ConfigError, InputError, MonaVoError
 from mona_vo.presets import PRESETS
 
 # Options every command takes, and the config options of the commands that build a
@@ -69,6 +70,10 @@ def _add_draws_option(p: argparse.ArgumentParser) -> None:
                    help="run everything once per value (repeatable; each value of each key is one "
                         "draw, e.g. --draws vo.grid_size=14,15,16,17,18) and write draws.md with "
                         "each sequence's mean, median and range over the draws")
+    p.add_argument("--parts", action="append", default=[], metavar="NAME=A:B",
+                   help="also score each run on rows A to B-1 of its trajectory, aligned alone "
+                        "(repeatable, e.g. --parts tune=0:225 --parts validate=225:450): a "
+                        "tuning and a validation part of one sequence, in every table")
 
 
 def _add_mask_options(p: argparse.ArgumentParser, *, allow_folder: bool = True) -> None:
@@ -208,6 +213,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "length over the GT's (1 = the run's scale; near 0 = it stopped "
                          "translating, a scale collapse)")
     et.set_defaults(func=_cmd_eval_traj)
+    ec = _sub(esub, "compare", help="two --draws runs of one command, before and after a change: "
+                                   "paired differences per sequence, variant and part")
+    ec.add_argument("--base", required=True, metavar="DIR", help="the first run's output folder (its draws.json)")
+    ec.add_argument("--new", required=True, metavar="DIR", help="the second run's output folder")
+    ec.set_defaults(func=_cmd_eval_compare)
     em = _sub(esub, "masks", help="DAVIS region J and boundary F of predicted masks, printed as JSON")
     em.add_argument("--pred", required=True, help="folder of predicted mask PNGs")
     em.add_argument("--gt", required=True, help="folder of ground-truth mask PNGs (same file names)")
@@ -491,6 +501,34 @@ def _cmd_eval_traj(args) -> int:
     return 0
 
 
+def _read_draws(folder: str) -> list[dict]:
+    path = Path(folder) / "draws.json"
+    try:
+        summary = json.loads(path.read_text())["summary"]
+    except FileNotFoundError:
+        raise InputError(f"{path}: not found (run the command with --draws first)") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise InputError(f"{path}: not a draws.json written by mona-vo ({exc})") from None
+    return summary
+
+
+def _cmd_eval_compare(args) -> int:
+    from eval.harness import compare_draws
+
+    rows = compare_draws(_read_draws(args.base), _read_draws(args.new))
+    if not rows:
+        raise InputError(f"{args.base} and {args.new} share no sequence, variant and draw")
+    print("| sequence | variant | part | draws | base mean | new mean | base median | new median | "
+          "new - base (mean +- se) | new lower |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        se = "-" if r["diff_se"] is None else f"{r['diff_se']:.4f}"
+        print(f"| {r['sequence']} | {r['variant']} | {r['part']} | {r['draws']} | {r['base_mean']:.4f} | "
+              f"{r['new_mean']:.4f} | {r['base_median']:.4f} | {r['new_median']:.4f} | "
+              f"{r['diff_mean']:+.4f} +- {se} | {r['lower']} of {r['draws']} |")
+    return 0
+
+
 def _cmd_eval_masks(args) -> int:
     from eval.mask_metrics import evaluate_mask_folders
 
@@ -505,7 +543,9 @@ def _print_summary(rows) -> None:
     for s in summarize(rows):
         ate = "-" if s["ate"] is None else f"{s['ate']:.4f}"
         rpe = "-" if s["rpe_trans"] is None else f"{s['rpe_trans']:.4f} m / {s['rpe_rot_deg']:.3f} deg"
-        print(f"{s['variant']:15s} ATE {ate}  RPE {rpe}  ok {s['ok']}/{s['sequences']}")
+        parts = "".join(f"  {p} {'-' if v is None else f'{v:.4f}'}"
+                        for p, v in (s.get("parts") or {}).items())
+        print(f"{s['variant']:15s} ATE {ate}  RPE {rpe}  ok {s['ok']}/{s['sequences']}{parts}")
     for r in rows:
         if r.get("status") != "ok":
             print(f"  {r['sequence']} [{r['variant']}]: {r.get('status')}")
@@ -575,10 +615,10 @@ def _cmd_eval_tum(args) -> int:
 
 def _evaluate(args, config, seqs, variants, extra_hash: dict) -> int:
     """The harness on these sequences, once or once per --draws value; prints the summary."""
-    from eval.harness import evaluate, evaluate_draws, parse_draws
+    from eval.harness import evaluate, evaluate_draws, parse_draws, parse_parts
 
     kwargs = dict(config=config, workers=args.workers, address=args.address,
-                  extra_hash=extra_hash, progress=not args.quiet)
+                  extra_hash=extra_hash, progress=not args.quiet, parts=parse_parts(args.parts))
     if args.draws:
         by_draw = evaluate_draws(seqs, variants, args.out, parse_draws(args.draws, config), **kwargs)
         rows = [r for rows in by_draw.values() for r in rows]
@@ -598,6 +638,10 @@ def _print_draws(by_draw) -> None:
         ate = "-" if s["ate_mean"] is None else \
             f"mean {s['ate_mean']:.4f} median {s['ate_median']:.4f} [{s['ate_min']:.4f}, {s['ate_max']:.4f}]"
         print(f"{s['sequence']} [{s['variant']}] ATE {ate}  ok {s['ok']}/{s['draws']}")
+        for part, p in (s.get("parts") or {}).items():
+            if p["ate_mean"] is not None:
+                print(f"  part {part}: ATE mean {p['ate_mean']:.4f} median {p['ate_median']:.4f}  "
+                      f"ok {p['ok']}/{len(p['ate'])}")
 
 
 def _cmd_eval_flow(args) -> int:

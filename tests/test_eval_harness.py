@@ -227,3 +227,75 @@ def test_verdict_quality_counts_what_a_curator_keeps_and_throws_away():
     q = verdict_quality(rows, 5.0)
     assert q["precision"] == 1.0 and q["recall"] == pytest.approx(3 / 4)
     assert np.isnan(verdict_quality([], 1.0)["precision"])
+
+
+def test_parts_score_rows_of_a_trajectory_aligned_alone(tmp_path):
+    """`--parts NAME=A:B`: each run's ATE on its rows A to B-1, each part aligned alone (as
+    `eval traj --frames`): a drift confined to the second half shows in that part only."""
+    from eval.harness import EvalSequence, parse_parts, score_parts
+    from eval.metrics import Trajectory
+    from mona_vo.errors import ConfigError
+
+    t = np.arange(20, dtype=float)
+    gt = np.tile(np.eye(4), (20, 1, 1))
+    gt[:, 0, 3] = 0.1 * t                          # a straight walk ...
+    gt[:, 1, 3] = 0.02 * np.sin(t)                 # ... with some sway (a Sim(3) needs it)
+    est = gt.copy()
+    est[10:, 2, 3] += 0.05 * (t[10:] - 10) ** 2 / 100   # drift in the second half only
+    write_tum_trajectory(tmp_path / "trajectory.txt", t, est)
+    seq = EvalSequence("walk", lambda: iter(()), 20, None, Trajectory(t, gt), max_diff=0.01)
+    parts = parse_parts(["first=0:10,second=10:20", "beyond=15:30"])
+    assert parts == {"first": (0, 10), "second": (10, 20), "beyond": (15, 30)}
+    ate = score_parts(seq, tmp_path / "trajectory.txt", parts)
+    assert ate["first"] < 1e-9 < ate["second"]
+    assert ate["beyond"] is None                   # the run has 20 rows
+    for bad in ("first", "first=0-10", "=0:10", "first=5:6", "a=0:5,a=5:10"):
+        with pytest.raises(ConfigError, match="--parts"):
+            parse_parts([bad])
+
+
+def test_compare_draws_pairs_the_draws_of_two_runs():
+    from eval.harness import compare_draws
+
+    def summary(ates, tune):
+        return [{"sequence": "s", "variant": "mona", "ate": ates,
+                 "parts": {"tune": {"ate": tune}}}]
+
+    base = summary({"g=1": 0.04, "g=2": 0.06, "g=3": 0.05}, {"g=1": 0.02, "g=2": 0.02, "g=3": None})
+    new = summary({"g=1": 0.03, "g=2": 0.05, "g=3": 0.07}, {"g=1": 0.01, "g=2": 0.03, "g=3": 0.01})
+    rows = {r["part"]: r for r in compare_draws(base, new)}
+    assert rows["all"]["draws"] == 3 and rows["all"]["lower"] == 2
+    assert rows["all"]["diff_mean"] == pytest.approx(0.0)
+    assert rows["all"]["diff_se"] == pytest.approx(np.std([-0.01, -0.01, 0.02], ddof=1) / np.sqrt(3))
+    assert rows["tune"]["draws"] == 2              # a draw that failed in either run is left out
+    assert rows["tune"]["diff_mean"] == pytest.approx(0.0) and rows["tune"]["lower"] == 1
+
+
+def test_eval_tum_parts_over_draws_and_eval_compare(mona_vo_exe, tmp_path):
+    """The product's commands give what `eval traj --frames` gives for each part, per draw in
+    draws.md, and `eval compare` pairs two such runs; a folder without draws.json is a one-line
+    error."""
+    scene = SyntheticScene(SceneConfig(width=320, height=136, n_frames=14, preset="static", seed=1))
+    stamps = 1311868164.0 + np.arange(len(scene)) / 30.0
+    root = tmp_path / "tum_seq"
+    write_tum_layout(root, stamps, (f.image for f in scene), scene.poses(), scene.intrinsics)
+    out = tmp_path / "eval"
+    proc = cli(mona_vo_exe, "eval", "tum", "--root", root, "--variants", "none", "--out", out,
+               "--draws", "vo.grid_size=12,16", "--parts", "a=0:7", "--parts", "b=7:14")
+    assert proc.returncode == 0, proc.stderr
+    s, = json.loads((out / "draws.json").read_text())["summary"]
+    for draw in ("vo.grid_size=12", "vo.grid_size=16"):
+        est = out / "draws" / draw / "none" / "tum_seq" / "trajectory.txt"
+        traj = cli(mona_vo_exe, "eval", "traj", "--gt", root / "groundtruth.txt", "--est", est,
+                   "--max-diff", "0.02", "--frames", "7:14")
+        assert traj.returncode == 0, traj.stderr
+        assert s["parts"]["b"]["ate"][draw] == pytest.approx(json.loads(traj.stdout)["ate"])
+        row, = json.loads((out / "draws" / draw / "results.json").read_text())["runs"]
+        assert row["parts"]["b"] == pytest.approx(s["parts"]["b"]["ate"][draw])
+    assert "| tum_seq | none | b | 2 / 2 |" in (out / "draws.md").read_text()
+    proc = cli(mona_vo_exe, "eval", "compare", "--base", out, "--new", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "| tum_seq | none | b | 2 |" in proc.stdout and "+0.0000 +- 0.0000 | 0 of 2 |" in proc.stdout
+    proc = cli(mona_vo_exe, "eval", "compare", "--base", tmp_path / "nothing", "--new", out)
+    assert proc.returncode != 0 and "draws.json" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
