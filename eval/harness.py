@@ -313,9 +313,8 @@ def summarize(rows: list[dict]) -> list[dict]:
         def mean(key):
             vals = [r[key] for r in ok if r.get(key) is not None]
             return float(np.mean(vals)) if vals else None
-        names = dict.fromkeys(k for r in ok for k in (r.get("parts") or {}))
         part_means = {}
-        for name in names:
+        for name in _part_names(ok):
             vals = [r["parts"][name] for r in ok if (r.get("parts") or {}).get(name) is not None]
             part_means[name] = float(np.mean(vals)) if vals else None
         out.append({"variant": variant, "sequences": len(sel), "ok": len(ok),

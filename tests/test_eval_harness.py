@@ -163,15 +163,21 @@ def test_eval_tum_on_the_bonn_crowd_clip(mona_vo_exe, shared_subdir, tmp_path):
     assert 0 < float(row["ate"]) < 0.2   # metres, over a 0.17 m path: a sanity bound, not a target
 
 
+def _small_tum_folder(tmp_path, preset: str, seed: int) -> Path:
+    """A 14-frame 320 x 136 generated sequence in TUM RGB-D layout, at ``tmp_path/tum_seq``."""
+    scene = SyntheticScene(SceneConfig(width=320, height=136, n_frames=14, preset=preset, seed=seed))
+    stamps = 1311868164.0 + np.arange(len(scene)) / 30.0
+    root = tmp_path / "tum_seq"
+    write_tum_layout(root, stamps, (f.image for f in scene), scene.poses(), scene.intrinsics)
+    return root
+
+
 def test_eval_tum_draws_run_once_per_value_and_summarise_the_spread(mona_vo_exe, tmp_path):
     """`--draws KEY=V1,V2`: every variant runs once per value, each into draws/KEY=V/, and
     draws.json gives per sequence and variant the ATE of every draw with their mean, median and
     range (which must agree with the draws' own result files); a bad key or value is a one-line
     error naming it, before anything runs."""
-    scene = SyntheticScene(SceneConfig(width=320, height=136, n_frames=14, preset="one-large", seed=0))
-    stamps = 1311868164.0 + np.arange(len(scene)) / 30.0
-    root = tmp_path / "tum_seq"
-    write_tum_layout(root, stamps, (f.image for f in scene), scene.poses(), scene.intrinsics)
+    root = _small_tum_folder(tmp_path, "one-large", 0)
     out = tmp_path / "eval"
     proc = cli(mona_vo_exe, "eval", "tum", "--root", root, "--variants", "none", "--out", out,
                "--draws", "vo.grid_size=12,16", "--draws", "vo.keyframe_max_gap=4")
@@ -275,10 +281,7 @@ def test_eval_tum_parts_over_draws_and_eval_compare(mona_vo_exe, tmp_path):
     """The product's commands give what `eval traj --frames` gives for each part, per draw in
     draws.md, and `eval compare` pairs two such runs; a folder without draws.json is a one-line
     error."""
-    scene = SyntheticScene(SceneConfig(width=320, height=136, n_frames=14, preset="static", seed=1))
-    stamps = 1311868164.0 + np.arange(len(scene)) / 30.0
-    root = tmp_path / "tum_seq"
-    write_tum_layout(root, stamps, (f.image for f in scene), scene.poses(), scene.intrinsics)
+    root = _small_tum_folder(tmp_path, "static", 1)
     out = tmp_path / "eval"
     proc = cli(mona_vo_exe, "eval", "tum", "--root", root, "--variants", "none", "--out", out,
                "--draws", "vo.grid_size=12,16", "--parts", "a=0:7", "--parts", "b=7:14")
