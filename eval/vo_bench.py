@@ -11,11 +11,14 @@ given as a percentage of the GT path length, the unit of the issue targets.
 
 ``python -m eval.vo_bench --presets static,one-large --seeds 0-5 --variants none,gt`` prints the
 per-sequence rows and the per-preset means; ``mona-vo bench`` adds the COLMAP peer.
+``python -m eval.vo_bench --compare BASE.json NEW.json`` pairs two ``--out`` files of one command,
+before and after a change (:func:`compare_runs`).
 """
 from __future__ import annotations
 
 import argparse
 import resource
+import sys
 import time
 from dataclasses import dataclass
 
@@ -286,6 +289,61 @@ def format_summary(summary: list[dict], baseline: str = "none") -> str:
     return "\n".join(lines)
 
 
+def compare_runs(base: list[dict], new: list[dict], flag: float = 0.05) -> tuple[list[dict], list[dict]]:
+    """Two benches' rows (``--out`` files), paired by preset, seed and variant: per pair the ATE
+    % of path and mask J before and after, and whether the ATE moved by more than ``flag`` (a
+    share, on the log scale); per preset and variant, over the pairs scored in both, the
+    geometric means, the mean paired log ratio with its standard error (a ratio within about two
+    standard errors of 1 is no change: the fast turns move by factors either way) and the count
+    lower. Returns (pairs, summary)."""
+    old = {(r["preset"], r["seed"], r["variant"]): r for r in base}
+    pairs = []
+    for r in new:
+        b = old.get((r["preset"], r["seed"], r["variant"]))
+        if b is None:
+            continue
+        x, y = float(b["ate_pct"]), float(r["ate_pct"])
+        both = np.isfinite(x) and np.isfinite(y) and x > 0 and y > 0
+        log_ratio = float(np.log(y / x)) if both else float("nan")
+        pairs.append({"preset": r["preset"], "seed": r["seed"], "variant": r["variant"],
+                      "ate_pct_base": x, "ate_pct_new": y, "log_ratio": log_ratio,
+                      "mask_j_base": float(b.get("mask_j", float("nan"))),
+                      "mask_j_new": float(r.get("mask_j", float("nan"))),
+                      "moved": bool(both and abs(log_ratio) > np.log1p(flag))})
+    summary = []
+    for key in dict.fromkeys((p["preset"], p["variant"]) for p in pairs):
+        sel = [p for p in pairs if (p["preset"], p["variant"]) == key and np.isfinite(p["log_ratio"])]
+        if not sel:
+            continue
+        lr = np.array([p["log_ratio"] for p in sel])
+        gm = lambda k: float(np.exp(np.mean(np.log([p[k] for p in sel]))))
+        summary.append({"preset": key[0], "variant": key[1], "n": len(sel),
+                        "gmean_base": gm("ate_pct_base"), "gmean_new": gm("ate_pct_new"),
+                        "ratio": float(np.exp(lr.mean())),
+                        "ratio_se": float(lr.std(ddof=1) / np.sqrt(len(lr))) if len(lr) > 1 else float("nan"),
+                        "lower": int(np.sum(lr < 0)), "higher": int(np.sum(lr > 0))})
+    return pairs, summary
+
+
+def format_comparison(pairs: list[dict], summary: list[dict]) -> str:
+    lines = []
+    for p in pairs:
+        j = (f"  mask J {p['mask_j_base']:.3f} -> {p['mask_j_new']:.3f}"
+             if np.isfinite(p["mask_j_base"]) or np.isfinite(p["mask_j_new"]) else "")
+        lines.append(f"{p['preset']:13s} seed {p['seed']:3d} {p['variant']:11s} ATE % "
+                     f"{p['ate_pct_base']:7.3f} -> {p['ate_pct_new']:7.3f}{j}"
+                     + ("  <<" if p["moved"] and p["log_ratio"] < 0 else
+                        "  >>" if p["moved"] else ""))
+    lines.append("")
+    for s in summary:
+        lines.append(f"{s['preset']:13s} {s['variant']:11s} n {s['n']:2d}  geometric mean ATE % "
+                     f"{s['gmean_base']:.3f} -> {s['gmean_new']:.3f}  ratio {s['ratio']:.3f} "
+                     f"(log se {s['ratio_se']:.3f})  lower {s['lower']}, higher {s['higher']}")
+    lines.append("<< / >>: the ATE moved down / up by more than 5 %. Pairs a run could not score "
+                 "(rotation-only) are listed, not counted.")
+    return "\n".join(lines)
+
+
 def parse_seeds(text: str) -> list[int]:
     """``"0-2,5"`` -> ``[0, 1, 2, 5]``; anything else raises ConfigError naming --seeds."""
     from mona_vo.errors import ConfigError
@@ -306,6 +364,9 @@ def parse_seeds(text: str) -> list[int]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--compare", nargs=2, metavar=("BASE", "NEW"),
+                    help="pair two --out files of one command (before and after a change) and "
+                         "print per-sequence and per-preset changes; nothing is run")
     ap.add_argument("--presets", default="static,one-large,several,fast-rotation")
     ap.add_argument("--seeds", default="0-5")
     ap.add_argument("--variants", default="none,gt,mona")
@@ -331,6 +392,16 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of each sequence, to measure the run-to-run spread (default 1)")
     args = ap.parse_args(argv)
+    if args.compare:
+        from mona_vo.errors import MonaVoError
+
+        try:
+            rows = [_read_rows(f) for f in args.compare]
+        except MonaVoError as exc:
+            print(f"python -m eval.vo_bench: error: {exc}", file=sys.stderr)
+            return 1
+        print(format_comparison(*compare_runs(*rows)))
+        return 0
     from mona_vo.config import load_config, parse_set_options
 
     w, h = (int(v) for v in args.size.split("x"))
@@ -356,6 +427,20 @@ def main(argv=None) -> int:
                                                indent=1, default=float) + "\n")
     print(f"peak memory {peak_memory_mb():.0f} MB")
     return 0
+
+
+def _read_rows(path: str) -> list[dict]:
+    """The rows of a ``--out`` file; a missing or foreign file is a one-line InputError."""
+    import json
+
+    from mona_vo.errors import InputError
+
+    try:
+        return json.loads(open(path).read())["rows"]
+    except FileNotFoundError:
+        raise InputError(f"{path}: not found") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise InputError(f"{path}: not a file written by eval.vo_bench --out ({exc})") from None
 
 
 if __name__ == "__main__":

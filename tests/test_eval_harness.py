@@ -302,3 +302,27 @@ def test_eval_tum_parts_over_draws_and_eval_compare(mona_vo_exe, tmp_path):
     proc = cli(mona_vo_exe, "eval", "compare", "--base", tmp_path / "nothing", "--new", out)
     assert proc.returncode != 0 and "draws.json" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_vo_bench_compare_pairs_two_runs_by_sequence(tmp_path):
+    """`python -m eval.vo_bench --compare BASE NEW`: rows paired by preset, seed and variant;
+    the per-preset ratio is the geometric mean of the paired ratios; a pair that one run could
+    not score is listed and left out of the means; a missing file is a one-line error."""
+    from eval.vo_bench import compare_runs, main
+
+    def row(seed, ate, j=float("nan")):
+        return {"preset": "mixed", "seed": seed, "variant": "mona", "ate_pct": ate, "mask_j": j}
+
+    base = [row(0, 0.2, 0.5), row(1, 0.4), row(2, 1.0), row(3, float("nan"))]
+    new = [row(0, 0.1, 0.6), row(1, 0.4), row(2, 2.0), row(3, 0.3), row(9, 0.1)]
+    pairs, summary = compare_runs(base, new)
+    assert [p["seed"] for p in pairs] == [0, 1, 2, 3]
+    assert [p["moved"] for p in pairs] == [True, False, True, False]
+    s, = summary
+    assert s["n"] == 3 and s["lower"] == 1 and s["higher"] == 1
+    assert s["ratio"] == pytest.approx(1.0) and s["gmean_new"] == pytest.approx(s["gmean_base"])
+    assert s["gmean_base"] == pytest.approx((0.2 * 0.4 * 1.0) ** (1 / 3))
+    (tmp_path / "a.json").write_text(json.dumps({"rows": base}))
+    (tmp_path / "b.json").write_text(json.dumps({"rows": new}))
+    assert main(["--compare", str(tmp_path / "a.json"), str(tmp_path / "b.json")]) == 0
+    assert main(["--compare", str(tmp_path / "a.json"), str(tmp_path / "none.json")]) == 1
