@@ -503,14 +503,15 @@ def write_draws(out_dir: Path, by_draw: dict[str, list[dict]]) -> None:
                      f"{_fmt(s['ate_min'], 4)} | {_fmt(s['ate_max'], 4)} | {_fmt(s['rpe_rot_mean'])} |")
     lines += ["", "ATE in metres, one run per draw (`draws/<key=value>/`): "
               + ", ".join(f"`{n}`" for n in by_draw) + "."]
-    parted = [s for s in summary if s.get("parts")]
+    # A part the sequence is too short for (or that never scored) is no row of the table.
+    parted = [s for s in summary if any(p["ok"] for p in (s.get("parts") or {}).values())]
     if parted:
         lines += ["", "Per part (rows of each trajectory, aligned alone), ATE in metres, each draw:", "",
                   "| sequence | variant | part | draws ok | mean | median | " +
                   " | ".join(f"`{n}`" for n in by_draw) + " |",
                   "|---|---|---|---|---|---|" + "---|" * len(by_draw)]
         for s in parted:
-            for part, p in s["parts"].items():
+            for part, p in ((k, v) for k, v in s["parts"].items() if v["ok"]):
                 lines.append(f"| {s['sequence']} | {s['variant']} | {part} | {p['ok']} / {len(p['ate'])} | "
                              f"{_fmt(p['ate_mean'], 4)} | {_fmt(p['ate_median'], 4)} | " +
                              " | ".join(_fmt(p["ate"].get(n), 4) for n in by_draw) + " |")

@@ -326,3 +326,21 @@ def test_vo_bench_compare_pairs_two_runs_by_sequence(tmp_path):
     (tmp_path / "b.json").write_text(json.dumps({"rows": new}))
     assert main(["--compare", str(tmp_path / "a.json"), str(tmp_path / "b.json")]) == 0
     assert main(["--compare", str(tmp_path / "a.json"), str(tmp_path / "none.json")]) == 1
+
+
+def test_draws_md_lists_only_the_parts_a_sequence_scored(tmp_path):
+    """A part beyond a short sequence (Bonn's 53-frame clip beside its 450-frame part) scores
+    nothing there and is no row of draws.md's part table."""
+    from eval.harness import write_draws
+
+    def row(seq, ate, parts):
+        return {"sequence": seq, "variant": "mona", "status": "ok", "ate": ate, "parts": parts}
+
+    by_draw = {"g=1": [row("long", 0.05, {"tune": 0.02}), row("clip", 0.01, {"tune": None})],
+               "g=2": [row("long", 0.06, {"tune": 0.03}), row("clip", 0.01, {"tune": None})]}
+    write_draws(tmp_path, by_draw)
+    md = (tmp_path / "draws.md").read_text()
+    assert "| long | mona | tune | 2 / 2 | 0.0250 |" in md
+    assert "| clip | mona | tune |" not in md
+    s = {x["sequence"]: x for x in json.loads((tmp_path / "draws.json").read_text())["summary"]}
+    assert s["clip"]["parts"]["tune"]["ok"] == 0 and s["long"]["parts"]["tune"]["ok"] == 2
