@@ -432,11 +432,12 @@ def main(argv=None) -> int:
 def _read_rows(path: str) -> list[dict]:
     """The rows of a ``--out`` file; a missing or foreign file is a one-line InputError."""
     import json
+    from pathlib import Path
 
     from mona_vo.errors import InputError
 
     try:
-        return json.loads(open(path).read())["rows"]
+        return json.loads(Path(path).read_text())["rows"]
     except FileNotFoundError:
         raise InputError(f"{path}: not found") from None
     except (json.JSONDecodeError, KeyError, TypeError) as exc:
