@@ -27,6 +27,9 @@ Pixels
     of width w spans x in [-0.5, w - 0.5]. Pixel coordinates are ``(x, y)`` = (column, row) float
     arrays of shape (N, 2); images are indexed ``image[row, col]``. This is OpenCV's convention, so
     ``cv2.remap``, ``calcOpticalFlowPyrLK`` and ``solvePnP`` take these coordinates unchanged.
+    Between an image and one ``s`` times its size, pixel edges map onto each other:
+    ``x' + 0.5 = (x + 0.5) * s`` (:func:`scale_pixels`, :func:`scale_boxes`,
+    :meth:`Intrinsics.scaled`).
 """
 from __future__ import annotations
 
@@ -224,6 +227,24 @@ def pixel_grid(width: int, height: int) -> np.ndarray:
     """(height, width, 2) float64 pixel-centre coordinates x, y."""
     xs, ys = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     return np.stack([xs, ys], axis=-1)
+
+
+def scale_pixels(xy: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """(..., 2) pixels x, y of an image -> pixels of one ``sx`` (``sy``) times its width (height):
+    ``x' + 0.5 = (x + 0.5) * sx``. A float array keeps its dtype; any other becomes float64."""
+    p = np.asarray(xy)
+    if not np.issubdtype(p.dtype, np.floating):
+        p = p.astype(np.float64)
+    out = np.empty_like(p)
+    out[..., 0] = (p[..., 0] + 0.5) * sx - 0.5
+    out[..., 1] = (p[..., 1] + 0.5) * sy - 0.5
+    return out
+
+
+def scale_boxes(xyxy: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """(K, 4) boxes x0, y0, x1, y1 rescaled as :func:`scale_pixels` rescales their corners."""
+    p = np.asarray(xyxy)
+    return scale_pixels(p.reshape(-1, 2, 2), sx, sy).reshape(p.shape)
 
 
 def working_size(width: int, height: int, long_side: int) -> tuple[int, int]:

@@ -54,6 +54,7 @@ from scipy.sparse.csgraph import connected_components
 
 from mona_vo.box_filter import count_points_in_boxes
 from mona_vo.config import check_fields, setting
+from mona_vo.conventions import scale_boxes
 from mona_vo.errors import ConfigError
 from mona_vo.registry import Registry
 
@@ -324,16 +325,6 @@ def merge_boxes(xyxy: np.ndarray, score: np.ndarray,
     return (np.asarray(b, np.float32).reshape(-1, 4), np.asarray(sc, np.float32))
 
 
-def _to_full_resolution(xyxy: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """(K, 4) boxes in analysis pixels -> full-resolution pixels, the analysis image being
-    ``1 / sx`` (``1 / sy``) of the full one: pixel edges map as
-    ``x_full + 0.5 = (x_small + 0.5) * s``."""
-    out = np.empty_like(xyxy)
-    out[:, [0, 2]] = (xyxy[:, [0, 2]] + 0.5) * sx - 0.5
-    out[:, [1, 3]] = (xyxy[:, [1, 3]] + 0.5) * sy - 0.5
-    return out
-
-
 @DETECTORS.register("motion")
 class MotionDetector(Detector):
     """Class-agnostic boxes around regions whose flow disagrees with the camera's motion."""
@@ -364,7 +355,7 @@ class MotionDetector(Detector):
             if len(small):
                 score = np.array([mm[labels == k].mean() / theta
                                   for k in np.unique(labels) if k != 0], np.float32)
-                xyxy = _to_full_resolution(small, W / w, H / h)
+                xyxy = scale_boxes(small, W / w, H / h)
                 bw, bh = xyxy[:, 2] - xyxy[:, 0], xyxy[:, 3] - xyxy[:, 1]
                 xyxy[:, 0] -= cfg.box_margin_frac * bw
                 xyxy[:, 2] += cfg.box_margin_frac * bw
@@ -392,7 +383,7 @@ class MotionDetector(Detector):
             small, labels = mask_to_boxes(context.prior_mask,
                                           max(int(round(cfg.min_area_frac * ph * pw)), 1))
             if len(small):
-                prior = _to_full_resolution(small, W / pw, H / ph)
+                prior = scale_boxes(small, W / pw, H / ph)
                 if cfg.prior_min_support > 0:
                     support = count_points_in_boxes(prior, dyn)
                     prior = prior[support >= cfg.prior_min_support]

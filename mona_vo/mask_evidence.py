@@ -66,6 +66,7 @@ import cv2
 import numpy as np
 
 from mona_vo.config import check_fields, setting
+from mona_vo.conventions import scale_pixels
 from mona_vo.errors import ConfigError
 from mona_vo.flow import flow_edges, forward_warp_values
 
@@ -138,7 +139,7 @@ def map_pixels(points: np.ndarray, full_width: int, map_width: int) -> np.ndarra
     """(N, 2) int64 map pixels (column, row) of (N, 2) full-resolution pixels x, y, the map
     being ``map_width / full_width`` of the image (pixel centres at integers at both scales)."""
     s = map_width / float(full_width)
-    return np.round((np.asarray(points, np.float64).reshape(-1, 2) + 0.5) * s - 0.5).astype(np.int64)
+    return np.round(scale_pixels(np.asarray(points, np.float64).reshape(-1, 2), s, s)).astype(np.int64)
 
 
 def observe(motion_map: np.ndarray | None, theta: float, shape: tuple[int, int],

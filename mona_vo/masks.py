@@ -80,9 +80,9 @@ import numpy as np
 
 from mona_vo.box_filter import UNIT_RULES, BoxFilterResult, adaptive_box_filter
 from mona_vo.config import check_fields, setting
-from mona_vo.conventions import Intrinsics, working_size
+from mona_vo.conventions import Intrinsics, scale_boxes, working_size
 from mona_vo.detection import (DETECTORS, MOTION_LABEL, Boxes, Detector, FrameContext,
-                               MotionDetectorConfig, _to_full_resolution, box_pixel_ranges,
+                               MotionDetectorConfig, box_pixel_ranges,
                                mask_to_boxes, merge_boxes)
 from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, NO_MODEL, DynamicPoints,
                                     DynamicPointsConfig, DynamicPointsTracker,
@@ -699,7 +699,8 @@ class MonaMasker:
         resolution) of a frame of ``shape`` (H, W)."""
         H, W = shape
         h, w = found.shape
-        ranges = box_pixel_ranges(_to_full_resolution_boxes(boxes.xyxy, w / W, h / H), w, h)
+        ranges = box_pixel_ranges(scale_boxes(np.asarray(boxes.xyxy, np.float64), w / W, h / H),
+                                  w, h)
         return np.array([found[r0:r1, c0:c1].any() for c0, r0, c1, r1 in ranges], bool)
 
     def _with_evidence(self, kept: Boxes, found: np.ndarray, allowed: np.ndarray | None,
@@ -713,7 +714,7 @@ class MonaMasker:
         small, _ = mask_to_boxes(found, 1)
         if not len(small):
             return kept
-        xyxy = _to_full_resolution(small, W / w, H / h)
+        xyxy = scale_boxes(small, W / w, H / h)
         bw, bh = xyxy[:, 2] - xyxy[:, 0], xyxy[:, 3] - xyxy[:, 1]
         margin = self.config.motion.box_margin_frac
         xyxy += np.stack([-margin * bw, -margin * bh, margin * bw, margin * bh], axis=1)
@@ -745,14 +746,6 @@ class _Analysis(NamedTuple):
 
 
 IGNORE_MARGIN = 6   # analysis pixels left out around ignored pixels (MonaMasker's ``ignore``)
-
-
-def _to_full_resolution_boxes(xyxy: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """(K, 4) full-resolution boxes -> the analysis resolution (``sx = w / W``)."""
-    out = np.asarray(xyxy, np.float64).copy()
-    out[:, [0, 2]] = (out[:, [0, 2]] + 0.5) * sx - 0.5
-    out[:, [1, 3]] = (out[:, [1, 3]] + 0.5) * sy - 0.5
-    return out
 
 
 def compute_masks(frames: Iterable, config: MaskConfig | None = None,

@@ -56,7 +56,7 @@ import numpy as np
 from mona_vo.detection import (Boxes, FrameContext, box_pixel_ranges, group_points,
                                moving_region_mask)
 from mona_vo.config import check_fields, setting
-from mona_vo.conventions import working_size
+from mona_vo.conventions import scale_boxes, scale_pixels, working_size
 from mona_vo.errors import ConfigError
 from mona_vo.registry import Registry
 
@@ -171,19 +171,12 @@ def refine_edges(image: np.ndarray, soft: np.ndarray, radius: int, eps: float) -
     return out
 
 
-def scaled_points(points: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """(N, 2) float64 pixels x, y of an image ``sx`` (``sy``) times the size of the one the (N, 2)
-    ``points`` are in: pixel edges map as ``x_small + 0.5 = (x + 0.5) * s``."""
-    p = np.asarray(points, np.float64).reshape(-1, 2)
-    return np.stack([(p[:, 0] + 0.5) * sx - 0.5, (p[:, 1] + 0.5) * sy - 0.5], axis=1)
-
-
 def static_point_zone(shape: tuple[int, int], points: np.ndarray, residual: np.ndarray,
                       static_px: float, reach_frac: float) -> np.ndarray:
     """(h, w) bool: the pixels of an image of ``shape`` whose nearest tracked point, within
     ``reach_frac`` of its diagonal, is static (residual at most ``static_px``, px per frame).
     ``points``: (N, 2) pixels of the frame's tracked points in that image
-    (:func:`scaled_points`); ``residual``: (N,) their residual motion over the track window.
+    (:func:`mona_vo.conventions.scale_pixels`); ``residual``: (N,) their residual motion over the track window.
 
     A dense flow smooths across a mover's outline, so its residual bleeds onto the background
     beside the mover; a point track follows its own patch. Where the nearest track is static,
@@ -395,23 +388,24 @@ class GrabCutSegmenter(Segmenter):
             followed = self._at_size(context.followed if context is not None else None, w, h)
             dyn = None
             if context is not None and len(context.dynamic_points):
-                dyn = scaled_points(context.dynamic_points, sx, sy)
+                dyn = scale_pixels(np.asarray(context.dynamic_points, np.float64), sx, sy)
             static = None
             if (cfg.fallback_static_frac > 0 and context is not None
                     and context.tracked_points is not None
                     and context.tracked_residual is not None):
-                static = static_point_zone((h, w), scaled_points(context.tracked_points, sx, sy),
+                static = static_point_zone((h, w), scale_pixels(np.asarray(context.tracked_points,
+                                                                        np.float64), sx, sy),
                                            context.tracked_residual,
                                            cfg.fallback_static_frac * context.theta_t,
                                            cfg.fallback_static_reach)
             order = np.argsort(-np.asarray(boxes.score))[:cfg.max_regions]
             whole = ~boxes.from_motion
             for b, object_box in zip(np.asarray(boxes.xyxy, np.float64)[order], whole[order]):
-                bs = scaled_points(b.reshape(2, 2), sx, sy).ravel()
+                bs = scale_boxes(b, sx, sy)
                 acc |= self._box_region(small, bs, mm, theta, prior, dyn, bool(object_box),
                                         followed, static)
         else:
-            ps = scaled_points(pts, sx, sy)
+            ps = scale_pixels(pts, sx, sy)
             link = cfg.point_link_frac * np.hypot(w, h)
             for idx in group_points(ps, link)[:cfg.max_regions]:
                 acc |= self._point_region(small, ps[idx])

@@ -142,3 +142,21 @@ def test_masks_and_segmenter_work_on_a_portrait_frame_as_on_its_landscape_turn()
     assert m._analysis_size() == (109, 256)
     small, sx, sy = GrabCutSegmenter()._work(np.zeros((640, 272, 3), np.uint8))
     assert small.shape[:2] == (256, 109)
+
+
+def test_pixels_and_boxes_rescale_by_their_edges():
+    from mona_vo.conventions import scale_boxes, scale_pixels
+
+    # The image's outer edges map onto the rescaled image's: x = -0.5 and x = W - 0.5.
+    W, H, w, h = 640, 272, 256, 109
+    edges = np.array([[-0.5, -0.5], [W - 0.5, H - 0.5]])
+    assert scale_pixels(edges, w / W, h / H) == pytest.approx(np.array([[-0.5, -0.5], [w - 0.5, h - 0.5]]))
+    pts = np.array([[10.0, 20.0], [300.25, 100.5]])
+    back = scale_pixels(scale_pixels(pts, w / W, h / H), W / w, H / h)
+    assert back == pytest.approx(pts)
+    # A box is its two corners.
+    box = np.array([[10.0, 20.0, 300.25, 100.5]], np.float32)
+    out = scale_boxes(box, 0.5, 0.25)
+    assert out.dtype == np.float32 and out.shape == (1, 4)
+    assert out[0] == pytest.approx(scale_pixels(pts, 0.5, 0.25).ravel())
+    assert scale_pixels(np.array([[1, 2]]), 2.0, 2.0).dtype == np.float64
