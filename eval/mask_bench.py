@@ -25,10 +25,11 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Iterable, NamedTuple, Sequence
+from typing import Iterable, Sequence
 
 import numpy as np
 
+from data_tools.frames import Frame
 from eval.mask_metrics import boundary_f, error_parts, evaluate_mask_sequence, region_similarity
 from mona_vo.detection import Boxes, Detector, mask_to_boxes
 from mona_vo.masks import STAGES, MaskConfig, compute_masks
@@ -38,13 +39,6 @@ DYNAMIC_PRESETS = ("one-large", "several", "fast-rotation")
 
 
 SYNTHETIC_MODES = ("boxes", "gt-boxes", "gt-detector")
-
-
-class _Shown(NamedTuple):
-    """A generated frame as the focal-length estimate reads frames (``.image``)."""
-
-    index: int
-    image: np.ndarray
 
 
 def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
@@ -89,7 +83,7 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                 if use_intrinsics:
                     intrinsics = scene.intrinsics
                 elif calib == "estimate":
-                    head = (_Shown(i, scene.render(i).image)
+                    head = (Frame(i, float(i), f"{i:05d}", scene.render(i).image)
                             for i in range(min(len(scene), pipeline.calibration.frames)))
                     _, _, intrinsics = camera_ahead(head, pipeline, width, height)
                 else:

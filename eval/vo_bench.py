@@ -20,11 +20,11 @@ import argparse
 import resource
 import sys
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
 from data_tools.bars import KINDS as BAR_KINDS, add_bars
+from data_tools.frames import Frame
 from data_tools.overlays import KINDS as OVERLAY_KINDS, add_overlay
 from data_tools.repeats import KINDS as REPEAT_KINDS, shown_images, shown_order
 from data_tools.synthetic import SceneConfig, SyntheticScene
@@ -36,21 +36,13 @@ from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 from mona_vo.run import clip_summary
 
 
-@dataclass(frozen=True)
-class _Frame:
-    index: int
-    timestamp: float
-    name: str
-    image: np.ndarray
-
-
 def render_sequence(preset: str, seed: int, n_frames: int, width: int, height: int):
     """(scene, frames, gt masks) of one generated sequence, rendered once, kept in memory."""
     scene = SyntheticScene(SceneConfig(width=width, height=height, n_frames=n_frames,
                                        preset=preset, seed=seed))
     frames, masks = [], []
     for r in scene:
-        frames.append(_Frame(r.index, float(r.index), f"{r.index:05d}", r.image))
+        frames.append(Frame(r.index, float(r.index), f"{r.index:05d}", r.image))
         masks.append(r.mask)
     return scene, frames, masks
 
@@ -151,14 +143,14 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
         for seed in seeds:
             scene, frames, masks = render_sequence(preset, seed, n_frames, width, height)
             if bars:
-                frames = [_Frame(f.index, f.timestamp, f.name, add_bars(f.image, bars)) for f in frames]
+                frames = [Frame(f.index, f.timestamp, f.name, add_bars(f.image, bars)) for f in frames]
             if overlay:
-                frames = [_Frame(f.index, f.timestamp, f.name, add_overlay(f.image, overlay))
+                frames = [Frame(f.index, f.timestamp, f.name, add_overlay(f.image, overlay))
                           for f in frames]
             gt_poses = None
             if frame_repeats:
                 order = shown_order(len(frames), frame_repeats)
-                frames = [_Frame(k, float(k), f"{k:05d}", im) for k, im in
+                frames = [Frame(k, float(k), f"{k:05d}", im) for k, im in
                           enumerate(shown_images([f.image for f in frames], frame_repeats))]
                 gt_poses = scene.poses()[order if frame_repeats != "stutter" else slice(None)]
                 masks = [masks[i] for i in (order if frame_repeats != "stutter" else range(len(order)))]

@@ -147,12 +147,13 @@ def test_frames_where_tracking_is_lost_carry_the_walk_on_until_a_new_map():
     position, and the new map started there, so the walk after it was offset by the gap
     (ATE 0.41 m against 0.17 m with the velocity carried)."""
     from eval.metrics import Trajectory, evaluate_trajectory
-    from eval.vo_bench import _Frame, render_sequence
+    from data_tools.frames import Frame
+    from eval.vo_bench import render_sequence
     from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 
     scene, frames, masks = render_sequence("mixed", 105, 30, 480, 204)
     for i in (12, 13, 14):
-        frames[i] = _Frame(i, float(i), frames[i].name, np.full_like(frames[i].image, 128))
+        frames[i] = Frame(i, float(i), frames[i].name, np.full_like(frames[i].image, 128))
     res = estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=list(masks),
                               config=PipelineConfig()).vo
     assert res.drops["tracking_lost"] >= 1
