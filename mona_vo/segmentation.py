@@ -35,9 +35,19 @@ initialised from motion and prompts, per prompt region:
   prompts: the ablation compares prompt types). So a points-only prompt gives smaller, local and
   often incomplete masks, as the paper's ablation reports for SAM.
 
+Resolution: GrabCut runs on a reduced copy of the image, as its cost grows with the pixels it
+cuts (about 1 microsecond per pixel and iteration on this project's 2-core machine), but at a
+coarse one its masks keep less of each object and follow its outline less closely (DAVIS J 0.50
+at 256 px across, 0.55 at 384). A frame is cut at ``work_size`` (its longer side) or finer, up
+to ``fine_size``, as far as its prompt regions (boxes with their context ring) then hold at most
+``fine_pixels`` pixels: as many as one 1024 x 436 frame has at 256 px across, the frame and
+resolution the masks' 100 ms target is met at. So a frame costs at most what a region over that
+whole frame costs (or, where its regions hold more pixels at ``work_size``, what they cost
+there, as before), and a frame with smaller objects spends that budget on finer detail (README,
+Masks, stop 39).
+
 The mask is upsampled to the image size, its edge moved onto the image edges nearby by a guided
-filter (``refine_radius_px``, ``refine_eps``; GrabCut itself runs at ``work_size``, as GrabCut
-on a 200 x 200 crop already costs about 90 ms), and dilated by ``dilate_px`` (masks feed a VO
+filter (``refine_radius_px``, ``refine_eps``), and dilated by ``dilate_px`` (masks feed a VO
 that must not use a point on a mover: a slightly too large mask costs less than a missed rim).
 
 Method ``motion`` is a cheaper alternative: the moving pixels inside the prompt regions, without
@@ -87,6 +97,11 @@ class GrabCutConfig:
     method: str = setting("grabcut", choices=("grabcut", "motion"))  # grabcut (colour + motion) | motion (moving pixels only)
     work_size: int = setting(256, ge=16)  # segmentation resolution: the image's longer side,
                                           # pixels (conventions.working_size)
+    fine_size: int = setting(512, ge=16)  # finest resolution (longer side), for frames whose
+                                          # prompt regions are small enough (fine_pixels)
+    fine_pixels: int = setting(28000, ge=0)  # a frame is cut finer than work_size while its
+                                          # regions hold at most this many pixels there (one
+                                          # 1024 x 436 frame at 256 across; 0: always work_size)
     iterations: int = setting(1, ge=1)  # GrabCut iterations per region (2 measured no better)
     context_margin_frac: float = setting(0.25, ge=0)  # ring around a box used as background, fraction of size
     fg_factor: float = setting(1.0, gt=0)  # probable foreground where motion > fg_factor * motion_theta
@@ -211,9 +226,33 @@ class GrabCutSegmenter(Segmenter):
         self.config.validate()
 
     # -- helpers -----------------------------------------------------------------------------
-    def _work(self, image: np.ndarray):
+    def _grown(self, boxes: np.ndarray) -> np.ndarray:
+        """(N, 4) boxes grown by their context ring (``context_margin_frac``), same pixels."""
+        m = self.config.context_margin_frac
+        b = np.asarray(boxes, np.float64).reshape(-1, 4)
+        bw, bh = b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]
+        return np.stack([b[:, 0] - m * bw, b[:, 1] - m * bh, b[:, 2] + m * bw,
+                         b[:, 3] + m * bh], axis=1)
+
+    def long_side(self, boxes: np.ndarray, width: int, height: int) -> int:
+        """The longer side (pixels) a frame of ``width`` x ``height`` is cut at with the box
+        prompts ``boxes`` (N, 4) (full-resolution pixels): the finest up to ``fine_size`` at
+        which their regions hold at most ``fine_pixels`` pixels, never coarser than
+        ``work_size`` (module docstring)."""
+        cfg = self.config
+        if cfg.fine_pixels <= 0 or cfg.fine_size <= cfg.work_size or not len(boxes):
+            return cfg.work_size
+        r = box_pixel_ranges(self._grown(boxes), width, height)
+        area = float(np.sum(np.clip(r[:, 2] - r[:, 0], 0, None)
+                            * np.clip(r[:, 3] - r[:, 1], 0, None)))
+        if area <= 0:
+            return cfg.work_size
+        finest = max(width, height) * np.sqrt(cfg.fine_pixels / area)
+        return int(np.clip(np.floor(finest), cfg.work_size, cfg.fine_size))
+
+    def _work(self, image: np.ndarray, long_side: int):
         H, W = image.shape[:2]
-        w, h = working_size(W, H, self.config.work_size)
+        w, h = working_size(W, H, long_side)
         small = image if (w, h) == (W, H) else cv2.resize(image, (w, h),
                                                           interpolation=cv2.INTER_AREA)
         return small, w / W, h / H
@@ -272,11 +311,7 @@ class GrabCutSegmenter(Segmenter):
         tracked point is static (:func:`static_point_zone`): not added back."""
         h, w = small.shape[:2]
         cfg = self.config
-        bw, bh = box_s[2] - box_s[0], box_s[3] - box_s[1]
-        m = cfg.context_margin_frac
-        grown = np.array([box_s[0] - m * bw, box_s[1] - m * bh, box_s[2] + m * bw,
-                          box_s[3] + m * bh])
-        c0, r0, c1, r1 = box_pixel_ranges(grown[None], w, h)[0]
+        c0, r0, c1, r1 = box_pixel_ranges(self._grown(box_s), w, h)[0]
         b0, q0, b1, q1 = box_pixel_ranges(np.asarray(box_s)[None], w, h)[0]
         out = np.zeros((h, w), bool)
         if b1 <= b0 or q1 <= q0:
@@ -378,7 +413,11 @@ class GrabCutSegmenter(Segmenter):
         pts = pts[np.isfinite(pts).all(axis=1)]
         if not has_boxes and len(pts) == 0:
             return np.zeros((H, W), bool)
-        small, sx, sy = self._work(image)
+        long_side = cfg.work_size
+        if has_boxes:
+            order = np.argsort(-np.asarray(boxes.score))[:cfg.max_regions]
+            long_side = self.long_side(np.asarray(boxes.xyxy, np.float64)[order], W, H)
+        small, sx, sy = self._work(image, long_side)
         h, w = small.shape[:2]
         mm = self._motion(context, w, h)
         theta = float(context.motion_theta) if context is not None else 0.0
@@ -398,7 +437,6 @@ class GrabCutSegmenter(Segmenter):
                                            context.tracked_residual,
                                            cfg.fallback_static_frac * context.theta_t,
                                            cfg.fallback_static_reach)
-            order = np.argsort(-np.asarray(boxes.score))[:cfg.max_regions]
             whole = ~boxes.from_motion
             for b, object_box in zip(np.asarray(boxes.xyxy, np.float64)[order], whole[order]):
                 bs = scale_boxes(b, sx, sy)

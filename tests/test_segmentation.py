@@ -126,3 +126,51 @@ def test_static_point_zone_is_where_the_nearest_track_is_static_within_reach():
     zone = static_point_zone((100, 100), pts, res, 0.5, 0.2)
     assert zone[50, 2:15].all() and not zone[50, 85:95].any()
     assert not static_point_zone((100, 100), pts, res, 0.5, 0.01)[50, 20]
+
+
+def _box_around(mask: np.ndarray, label: str = "person") -> Boxes:
+    ys, xs = np.nonzero(mask)
+    return Boxes(np.array([[xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5]],
+                          np.float32), np.ones(1, np.float32), np.array([label]))
+
+
+def test_the_cut_is_finer_where_the_regions_leave_room_in_the_budget():
+    """``long_side``: a frame is cut at ``work_size`` or finer, up to ``fine_size``, while its
+    regions (boxes with their context ring) hold at most ``fine_pixels`` pixels; never coarser
+    than ``work_size``, and no frame's cut exceeds the budget unless its regions exceed it at
+    ``work_size`` already."""
+    W2, H2 = 1024, 436
+    seg = GrabCutSegmenter(GrabCutConfig())               # work_size 256, fine_size 512
+    cfg = seg.config
+    budget = cfg.fine_pixels
+    sides = []
+    for half in (10, 40, 80, 120, 160, 220, 400):         # a square box of side 2 x half
+        box = np.array([[512 - half, 218 - half, 512 + half, 218 + half]], np.float64)
+        side = seg.long_side(box, W2, H2)
+        assert cfg.work_size <= side <= cfg.fine_size
+        grown = 2 * half * (1 + 2 * cfg.context_margin_frac)     # its side with the ring
+        region = min(grown, W2) * min(grown, H2)
+        if side > cfg.work_size:                          # finer: within the budget
+            assert region * (side / W2) ** 2 <= budget * 1.01
+        sides.append(side)
+    assert sides[0] == cfg.fine_size and sides[-1] == cfg.work_size
+    assert all(a >= b for a, b in zip(sides, sides[1:])) and len(set(sides)) > 2
+    assert GrabCutSegmenter(GrabCutConfig(fine_pixels=0)).long_side(box, W2, H2) == cfg.work_size
+
+
+def test_a_small_object_is_cut_at_the_finer_resolution():
+    """A 24 x 48 px object in a 1024 x 436 frame is 6 x 12 px at 256 across: its outline is
+    off by a coarse pixel (4 full-resolution pixels) there. With the budget's finer cut it
+    follows the object."""
+    rng = np.random.default_rng(0)
+    H2, W2 = 436, 1024
+    img = cv2.GaussianBlur(rng.uniform(60, 200, (H2, W2)).astype(np.float32), (0, 0), 3)
+    img = np.repeat(img[..., None], 3, axis=2).astype(np.uint8)
+    obj = np.zeros((H2, W2), np.uint8)
+    cv2.ellipse(obj, (512, 200), (12, 24), 15, 0, 360, 1, -1)
+    obj = obj > 0
+    img[obj] = (200, 40, 40)
+    box = _box_around(obj)
+    iou = {budget: _iou(GrabCutSegmenter(GrabCutConfig(fine_pixels=budget, dilate_px=0))
+                        .segment(img, box), obj) for budget in (0, 28000)}
+    assert iou[28000] > 0.98 and iou[28000] > iou[0] + 0.03
