@@ -250,9 +250,11 @@ class GrabCutSegmenter(Segmenter):
         finest = max(width, height) * np.sqrt(cfg.fine_pixels / area)
         return int(np.clip(np.floor(finest), cfg.work_size, cfg.fine_size))
 
-    def _work(self, image: np.ndarray, long_side: int):
+    def _work(self, image: np.ndarray, long_side: int | None = None):
+        """The image reduced to ``long_side`` (default ``work_size``) on its longer side, and
+        the x and y scales from the image to it."""
         H, W = image.shape[:2]
-        w, h = working_size(W, H, long_side)
+        w, h = working_size(W, H, long_side or self.config.work_size)
         small = image if (w, h) == (W, H) else cv2.resize(image, (w, h),
                                                           interpolation=cv2.INTER_AREA)
         return small, w / W, h / H
