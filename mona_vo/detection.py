@@ -118,6 +118,19 @@ class Boxes:
         return Boxes(b, self.score.copy(), self.label.copy())
 
 
+def grow_boxes(xyxy: np.ndarray, frac: float) -> np.ndarray:
+    """(K, 4) boxes, each grown by ``frac`` of its width (height) on its left and right (top and
+    bottom) sides; a new array of the same dtype."""
+    b = np.asarray(xyxy)
+    bw, bh = b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]
+    out = b.copy()
+    out[:, 0] -= frac * bw
+    out[:, 2] += frac * bw
+    out[:, 1] -= frac * bh
+    out[:, 3] += frac * bh
+    return out
+
+
 def box_pixel_ranges(xyxy: np.ndarray, width: int, height: int) -> np.ndarray:
     """(N, 4) int64 ``c0, r0, c1, r1`` (end exclusive, for slicing) of the pixels whose centres
     lie in each box, clipped to the image; empty ranges have c1 <= c0 or r1 <= r0."""
@@ -355,12 +368,7 @@ class MotionDetector(Detector):
             if len(small):
                 score = np.array([mm[labels == k].mean() / theta
                                   for k in np.unique(labels) if k != 0], np.float32)
-                xyxy = scale_boxes(small, W / w, H / h)
-                bw, bh = xyxy[:, 2] - xyxy[:, 0], xyxy[:, 3] - xyxy[:, 1]
-                xyxy[:, 0] -= cfg.box_margin_frac * bw
-                xyxy[:, 2] += cfg.box_margin_frac * bw
-                xyxy[:, 1] -= cfg.box_margin_frac * bh
-                xyxy[:, 3] += cfg.box_margin_frac * bh
+                xyxy = grow_boxes(scale_boxes(small, W / w, H / h), cfg.box_margin_frac)
         # Groups of dynamic points propose boxes too: the tracks, judged over their whole window,
         # see movers that the dense map misses in frames where they move along their epipolar
         # lines (measured: a car driving ahead of the camera for 4 frames).

@@ -82,7 +82,7 @@ from mona_vo.box_filter import UNIT_RULES, BoxFilterResult, adaptive_box_filter
 from mona_vo.config import check_fields, setting
 from mona_vo.conventions import Intrinsics, scale_boxes, working_size
 from mona_vo.detection import (DETECTORS, MOTION_LABEL, Boxes, Detector, FrameContext,
-                               MotionDetectorConfig, box_pixel_ranges,
+                               MotionDetectorConfig, box_pixel_ranges, grow_boxes,
                                mask_to_boxes, merge_boxes)
 from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, NO_MODEL, DynamicPoints,
                                     DynamicPointsConfig, DynamicPointsTracker,
@@ -714,10 +714,7 @@ class MonaMasker:
         small, _ = mask_to_boxes(found, 1)
         if not len(small):
             return kept
-        xyxy = scale_boxes(small, W / w, H / h)
-        bw, bh = xyxy[:, 2] - xyxy[:, 0], xyxy[:, 3] - xyxy[:, 1]
-        margin = self.config.motion.box_margin_frac
-        xyxy += np.stack([-margin * bw, -margin * bh, margin * bw, margin * bh], axis=1)
+        xyxy = grow_boxes(scale_boxes(small, W / w, H / h), self.config.motion.box_margin_frac)
         all_xyxy = np.concatenate([kept.xyxy, xyxy.astype(np.float32)])
         score = np.concatenate([kept.score, np.ones(len(xyxy), np.float32)])
         all_xyxy, score = merge_boxes(all_xyxy, score, self.config.motion.merge_overlap)

@@ -63,8 +63,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from mona_vo.detection import (Boxes, FrameContext, box_pixel_ranges, group_points,
-                               moving_region_mask)
+from mona_vo.detection import (Boxes, FrameContext, box_pixel_ranges, grow_boxes,
+                               group_points, moving_region_mask)
 from mona_vo.config import check_fields, setting
 from mona_vo.conventions import scale_boxes, scale_pixels, working_size
 from mona_vo.errors import ConfigError
@@ -226,14 +226,6 @@ class GrabCutSegmenter(Segmenter):
         self.config.validate()
 
     # -- helpers -----------------------------------------------------------------------------
-    def _grown(self, boxes: np.ndarray) -> np.ndarray:
-        """(N, 4) boxes grown by their context ring (``context_margin_frac``), same pixels."""
-        m = self.config.context_margin_frac
-        b = np.asarray(boxes, np.float64).reshape(-1, 4)
-        bw, bh = b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]
-        return np.stack([b[:, 0] - m * bw, b[:, 1] - m * bh, b[:, 2] + m * bw,
-                         b[:, 3] + m * bh], axis=1)
-
     def long_side(self, boxes: np.ndarray, width: int, height: int) -> int:
         """The longer side (pixels) a frame of ``width`` x ``height`` is cut at with the box
         prompts ``boxes`` (N, 4) (full-resolution pixels): the finest up to ``fine_size`` at
@@ -242,7 +234,8 @@ class GrabCutSegmenter(Segmenter):
         cfg = self.config
         if cfg.fine_pixels <= 0 or cfg.fine_size <= cfg.work_size or not len(boxes):
             return cfg.work_size
-        r = box_pixel_ranges(self._grown(boxes), width, height)
+        r = box_pixel_ranges(grow_boxes(np.asarray(boxes, np.float64).reshape(-1, 4),
+                                        cfg.context_margin_frac), width, height)
         area = float(np.sum(np.clip(r[:, 2] - r[:, 0], 0, None)
                             * np.clip(r[:, 3] - r[:, 1], 0, None)))
         if area <= 0:
@@ -313,7 +306,8 @@ class GrabCutSegmenter(Segmenter):
         tracked point is static (:func:`static_point_zone`): not added back."""
         h, w = small.shape[:2]
         cfg = self.config
-        c0, r0, c1, r1 = box_pixel_ranges(self._grown(box_s), w, h)[0]
+        grown = grow_boxes(np.asarray(box_s, np.float64).reshape(1, 4), cfg.context_margin_frac)
+        c0, r0, c1, r1 = box_pixel_ranges(grown, w, h)[0]
         b0, q0, b1, q1 = box_pixel_ranges(np.asarray(box_s)[None], w, h)[0]
         out = np.zeros((h, w), bool)
         if b1 <= b0 or q1 <= q0:

@@ -125,3 +125,14 @@ def test_bad_arguments_raise():
         adaptive_box_filter([(0, 0, 1, 1)], [[0, 0]], tau0=1, unit="largest")
     with pytest.raises(ValueError):
         adaptive_box_filter([(0, 0, 1)], [[0, 0]], tau0=1)
+
+
+def test_grow_boxes_widens_each_side_by_a_share_of_the_box_and_keeps_the_dtype():
+    """The one box growth the detector's margin, the evidence boxes and the segmenter's context
+    ring share."""
+    from mona_vo.detection import grow_boxes
+    b = np.array([[10, 20, 30, 60], [0, 0, 4, 2]], np.float32)
+    g = grow_boxes(b, 0.25)
+    assert g.dtype == np.float32 and b[0, 0] == 10            # a new array
+    np.testing.assert_allclose(g, [[5, 10, 35, 70], [-1, -0.5, 5, 2.5]])
+    np.testing.assert_array_equal(grow_boxes(b, 0.0), b)
