@@ -127,6 +127,12 @@ class Tracker(ABC):
         changing nothing, when the back end cannot take corrections."""
         return False
 
+    def revive(self, ids: np.ndarray, points: np.ndarray) -> bool:
+        """Start tracks again under earlier ids (not live now) at (N, 2) pixels of the current
+        frame: a landmark found again where its track had been lost (an occluder passed).
+        Returns ``takes_corrections``: False, changing nothing, when the back end cannot."""
+        return False
+
 
 @TRACKERS.register("lk")
 class LKTracker(Tracker):
@@ -187,6 +193,18 @@ class LKTracker(Tracker):
     def move(self, ids: np.ndarray, points: np.ndarray) -> bool:
         _, i, j = np.intersect1d(self._ids, np.asarray(ids, np.int64), return_indices=True)
         self._pts[i] = np.asarray(points, np.float32).reshape(-1, 2)[j]
+        return True
+
+    def revive(self, ids: np.ndarray, points: np.ndarray) -> bool:
+        ids = np.asarray(ids, np.int64)
+        if np.isin(ids, self._ids).any() or (len(ids) and ids.max() >= self._next_id):
+            raise ValueError("revive takes ids this tracker handed out that are not live")
+        points = np.asarray(points, np.float32).reshape(-1, 2)
+        v0 = np.median(self._vel, axis=0) if len(self._vel) else np.zeros(2, np.float32)
+        self._ids = np.concatenate([self._ids, ids])
+        self._pts = np.concatenate([self._pts, points])
+        self._err = np.concatenate([self._err, np.zeros(len(points), np.float32)])
+        self._vel = np.concatenate([self._vel, np.tile(v0, (len(points), 1)).astype(np.float32)])
         return True
 
     def step(self, image: np.ndarray) -> TrackUpdate:

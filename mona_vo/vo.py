@@ -40,10 +40,11 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ba.sliding_window_ba import BAConfig, BAProblem, sliding_window_ba
 from mona_vo.config import check_fields, setting
-from mona_vo.conventions import Intrinsics, invert_pose, make_pose, pixels_in_mask
+from mona_vo.conventions import Intrinsics, invert_pose, make_pose, pixels_in_mask, reproject
 from mona_vo.errors import ConfigError
 from mona_vo.geometry import homography_jacobians, reprojection_residuals
 from mona_vo.patch_align import Anchors, align_patches
@@ -53,7 +54,7 @@ from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose,
                               rotation_parallax_deg, translation_spread_deg, triangulate)
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissimilar_tracks,
-                              drift_test, dynamic_test, estimate_pose, interpolate_pose,
+                              drift_test, dynamic_test, estimate_pose, find_by_projection, interpolate_pose,
                               keyframe_needed, keyframe_shift_pct, pair_matches, predict_pose,
                               refine_pose, rotation_free_parallax_px, segment_spans, triangulate_against,
                               typical_speed, typical_velocity, walk_back)
@@ -63,6 +64,8 @@ KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED = (
     s.value for s in FrameStatus)
 LOW_CONFIDENCE = tuple(s.value for s in FrameStatus if s in _LOW)
 _OUT = np.uint8(LandmarkFlag.DYNAMIC | LandmarkFlag.REJECTED)   # never handed to a BA
+REACQUIRE_HALF_PX = 10   # half side of the patch a lost landmark is looked for with: the
+                         # tracker's 21 x 21 window
 _CHI2_5DOF_99 = 15.086   # scipy.stats.chi2.ppf(0.99, 5): the start pair's test (_densify_pair)
 
 
@@ -169,6 +172,14 @@ class VOConfig:
     anchor_half_px: int = setting(10, ge=1)  # half size of that patch, px (10: the tracker's
                                             # 21 x 21 window; at 7, noisy frames fitted worse
                                             # than six frame-to-frame steps)
+    reacquire_keyframes: int = setting(0, ge=0)  # at a keyframe, landmarks whose tracks were
+                                            # lost and that one of the last this many keyframes
+                                            # saw are looked for where the pose puts them and
+                                            # tracked again when found (a passer-by hid them;
+                                            # search by projection). 0: off
+    reacquire_px: float = setting(2.0, gt=0)  # ... found within this of that place, px
+    reacquire_min_ncc: float = setting(0.8, ge=-1, le=1)  # ... looking as they did there
+                                            # (normalised cross-correlation of the patch)
     refine: str = setting("global", choices=("global", "none"))  # after the sliding window, one
                                             # bundle adjustment over all keyframes (global) or
                                             # none (streaming)
@@ -306,6 +317,8 @@ class VisualOdometry:
         # Tracks are held to their first look only by a tracker that takes corrections.
         takes = config.anchor_tracks and self.tracker.takes_corrections
         self._anchors = Anchors(config.anchor_half_px) if takes else None
+        self._kf_grays: dict[int, np.ndarray] = {}   # keyframe row -> grey image, the last
+                                    # vo.reacquire_keyframes keyframes' (_reacquire)
         self._last_kf_view = None   # (gray, track ids, uv, T_world_cam, intrinsics) of the
                                     # last keyframe made while tracking (_drop_dissimilar)
         self._speed_hint: float | None = None       # map units/frame before a re-initialisation
@@ -789,6 +802,7 @@ class VisualOdometry:
         # 0.108 after it, 0.104 without anchors).
         self.timings["mapping"] += time.perf_counter() - t0
         obs = self._to_anchors(gray, obs, T_world_cam, intr)
+        obs = self._reacquire(gray, obs, T_world_cam, intr, mask)
         t0 = time.perf_counter()
         s = self._static(obs)
         need = ~m.landmarks.has_position(s.ids)
@@ -810,6 +824,10 @@ class VisualOdometry:
             self._anchors.add(full.ids, full.uv, row, gray)
         if self.cfg.patch_dissimilarity > 0:
             self._last_kf_view = (gray, full.ids, full.uv, T_world_cam, intr)
+        if self.cfg.reacquire_keyframes > 0:
+            self._kf_grays[row] = gray
+            for r in [r for r in self._kf_grays if r <= row - self.cfg.reacquire_keyframes]:
+                del self._kf_grays[r]
         m.frames.write(t, FrameStatus.KEYFRAME, int(n_inl), ref_kf=row, T=np.eye(4))
         self.timings["mapping"] += time.perf_counter() - t0
         self._bundle_adjust(bootstrapping)
@@ -845,6 +863,69 @@ class VisualOdometry:
         self.tracker.move(obs.ids[io[ok]], p[ok])
         self.timings["anchoring"] += time.perf_counter() - t0
         return Observation(obs.ids, uv, obs.masked)
+
+    def _reacquire(self, gray, obs: Observation, T_world_cam, intr, mask) -> Observation:
+        """Landmarks whose tracks were lost, seen unmasked by one of the last
+        ``reacquire_keyframes`` keyframes of this map, looked for where this keyframe's pose
+        puts them (:func:`find_by_projection`, from the last keyframe that saw each) and tracked
+        again under their own ids when found. People walking past a following camera hide the
+        background's landmarks; without this their tracks end for good, and once the people
+        have passed the pose rests on new landmarks alone, whose scale drifts (README, Known
+        limits: Bonn crowd). A landmark is not looked for inside a mask or an overlay, nor
+        within ``reacquire_px`` of a live track (the same corner tracked under a new id)."""
+        cfg = self.cfg
+        if cfg.reacquire_keyframes <= 0 or not self._kf_grays:
+            return obs
+        t0 = time.perf_counter()
+        kf, lm = self.map.keyframes, self.map.landmarks
+        rows = [r for r in sorted(self._kf_grays) if kf.segment[r] == self.map.segment]
+        seen = [(kf.observations(r), r) for r in rows]
+        ids = np.concatenate([o[0][~o[2]] for o, _ in seen] or [np.zeros(0, np.int64)])
+        uv = np.concatenate([o[1][~o[2]] for o, _ in seen] or [np.zeros((0, 2))])
+        row = np.concatenate([np.full(np.count_nonzero(~o[2]), r) for o, r in seen]
+                             or [np.zeros(0, np.int64)])
+        # The last sighting of each landmark (rows are oldest first).
+        _, first = np.unique(ids[::-1], return_index=True)
+        last = len(ids) - 1 - first
+        ids, uv, row = ids[last], uv[last], row[last]
+        sel = lm.usable(ids) & ~np.isin(ids, self.tracker.live().ids) & ~np.isin(ids, obs.ids)
+        ids, uv, row = ids[sel], uv[sel], row[sel]
+        proj, z = reproject(T_world_cam, lm.positions(ids), intr)
+        h, w = gray.shape
+        b = REACQUIRE_HALF_PX + 1
+        with np.errstate(invalid="ignore"):
+            sel = (z > 0) & (proj[:, 0] >= b) & (proj[:, 0] <= w - 1 - b) \
+                & (proj[:, 1] >= b) & (proj[:, 1] <= h - 1 - b)
+        ids, uv, row, proj = ids[sel], uv[sel], row[sel], proj[sel]
+        for m in (mask, self._occluded):
+            if m is not None and len(ids):
+                keep = ~pixels_in_mask(m, proj)
+                ids, uv, row, proj = ids[keep], uv[keep], row[keep], proj[keep]
+        if len(ids) and len(obs.uv):
+            d = cKDTree(obs.uv).query(proj)[0]
+            keep = d > cfg.reacquire_px
+            ids, uv, row, proj = ids[keep], uv[keep], row[keep], proj[keep]
+        found_ids, found_uv = [], []
+        for r in np.unique(row):
+            sel = row == r
+            R = (invert_pose(T_world_cam) @ kf.T_world_cam[r])[:3, :3]
+            H = intr.K @ R @ np.linalg.inv(kf.intrinsics(r).K)
+            p, ok = find_by_projection(self._kf_grays[r], uv[sel], gray, proj[sel], H,
+                                       half=REACQUIRE_HALF_PX, max_px=cfg.reacquire_px,
+                                       min_ncc=cfg.reacquire_min_ncc)
+            found_ids.append(ids[sel][ok])
+            found_uv.append(p[ok])
+        self.timings["reacquire"] += time.perf_counter() - t0
+        if not found_ids:
+            return obs
+        fid, fuv = np.concatenate(found_ids), np.concatenate(found_uv)
+        if not len(fid) or not self.tracker.revive(fid, fuv):
+            return obs
+        lm.strikes[fid] = 0
+        lm.drift[fid] = 0.0
+        self.drops["landmarks_reacquired"] += len(fid)
+        return Observation(np.concatenate([obs.ids, fid]), np.concatenate([obs.uv, fuv]),
+                           np.concatenate([obs.masked, np.zeros(len(fid), bool)]))
 
     def _drop_dissimilar(self, gray, obs: Observation, T_world_cam, intr) -> Observation:
         """Tracks whose patch no longer looks as it did at the last keyframe are dropped with

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose
 from mona_vo.geometry import (aligned_rms, cauchy_dynamic_probability, homography_jacobians,
                               reprojection_errors)
+from mona_vo.patch_align import align_patches, patch_templates
 from mona_vo.tracking import LKTracker, track_forward_backward
 from mona_vo.two_view import pixel_homography, rotation_parallax_deg, triangulate
 
@@ -412,3 +413,27 @@ def patch_similarity(gray_a: np.ndarray, uv_a: np.ndarray, gray_b: np.ndarray, u
         if den > 1e-6:
             out[i] = float(pa @ pb) / den
     return out
+
+
+def find_by_projection(ref_gray: np.ndarray, uv_ref: np.ndarray, gray: np.ndarray,
+                       uv_pred: np.ndarray, H_b_a: np.ndarray, *, half: int, max_px: float,
+                       min_ncc: float) -> tuple[np.ndarray, np.ndarray]:
+    """Landmarks seen at ``uv_ref`` (N, 2) in the grey image ``ref_gray`` looked for in ``gray``
+    where the pose puts them, ``uv_pred`` (N, 2): each (2 half + 1)^2 patch of the reference,
+    deformed by the local affine map of ``H_b_a`` (the turn between the two views, K_b R K_a^-1),
+    is fitted there by :func:`mona_vo.patch_align.align_patches` (affine, gain and offset).
+    Returns (N, 2) float64 positions and (N,) bool found: the fit converged, correlates at
+    least ``min_ncc`` with the reference, lies within ``max_px`` of the prediction (a wrong
+    landmark or a look-alike further off is not taken) and its patch is inside the image."""
+    uv_ref = np.asarray(uv_ref, np.float64).reshape(-1, 2)
+    uv_pred = np.asarray(uv_pred, np.float64).reshape(-1, 2)
+    if not len(uv_ref):
+        return uv_pred.copy(), np.zeros(0, bool)
+    templates = patch_templates(ref_gray, uv_ref, half)
+    p, ncc, ok = align_patches(templates, gray, uv_pred, homography_jacobians(H_b_a, uv_ref),
+                               half=half)
+    h, w = gray.shape[:2]
+    ok &= np.isfinite(p).all(axis=1) & (ncc >= min_ncc)
+    ok &= np.linalg.norm(p - uv_pred, axis=1) <= max_px
+    ok &= (p[:, 0] >= half) & (p[:, 0] <= w - 1 - half) & (p[:, 1] >= half) & (p[:, 1] <= h - 1 - half)
+    return p, ok
