@@ -180,6 +180,11 @@ class VOConfig:
     reacquire_px: float = setting(2.0, gt=0)  # ... found within this of that place, px
     reacquire_min_ncc: float = setting(0.8, ge=-1, le=1)  # ... looking as they did there
                                             # (normalised cross-correlation of the patch)
+    ba_outside_keyframes: int = setting(0, ge=0)  # the window's bundle adjustment also holds
+                                            # the observations of its landmarks by up to this
+                                            # many keyframes before the window, those keyframes
+                                            # fixed (as ORB-SLAM's local BA: a landmark keeps the
+                                            # views that fixed its depth). 0: off
     refine: str = setting("global", choices=("global", "none"))  # after the sliding window, one
                                             # bundle adjustment over all keyframes (global) or
                                             # none (streaming)
@@ -976,6 +981,7 @@ class VisualOdometry:
         # A landmark seen inside a mask at any frame counts as seen inside one here too.
         obs_masked = obs_masked | ((lm.flags[obs_lm] & np.uint8(LandmarkFlag.MASKED)) > 0)
         anchor = None
+        rows_all = rows
         if bootstrapping or self.cfg.gauge == "distance":
             # The first window (built on the essential matrix) always takes the minimal gauge:
             # freezing two of its keyframes would freeze any error of the two-view solution.
@@ -984,11 +990,26 @@ class VisualOdometry:
             anchor = (rows[0], rows[1], d)
         else:
             fixed = set(rows[:min(self.cfg.fixed_keyframes, len(rows) - 1)])
+            before = [r for r in range(max(0, rows[0] - self.cfg.ba_outside_keyframes), rows[0])
+                      if kf.segment[r] == m.segment]
+            if before:
+                idx = kf.observation_index(before)
+                o_kf, o_lm = kf.observation_rows(before), kf.obs_lm[idx]
+                sel = np.isin(o_lm, obs_lm) & ~kf.obs_masked[idx]
+                if sel.any():
+                    obs_kf = np.concatenate([obs_kf, o_kf[sel]])
+                    obs_lm = np.concatenate([obs_lm, o_lm[sel]])
+                    obs_uv = np.concatenate([obs_uv, kf.obs_uv[idx][sel].astype(np.float64)])
+                    obs_masked = np.concatenate(
+                        [obs_masked, (lm.flags[o_lm[sel]] & np.uint8(LandmarkFlag.MASKED)) > 0])
+                    extra = sorted(set(o_kf[sel].tolist()))
+                    rows_all = rows + extra
+                    fixed |= set(extra)
         uniq = np.unique(obs_lm)
         P = lm.positions(uniq)
         problem = BAProblem(
-            poses={r: kf.T_world_cam[r].copy() for r in rows}, fixed=fixed,
-            intrinsics={r: kf.intrinsics(r) for r in rows},
+            poses={r: kf.T_world_cam[r].copy() for r in rows_all}, fixed=fixed,
+            intrinsics={r: kf.intrinsics(r) for r in rows_all},
             landmarks={int(j): P[i] for i, j in enumerate(uniq)},
             obs_kf=obs_kf, obs_lm=obs_lm, obs_uv=obs_uv, scale_anchor=anchor,
             obs_masked=obs_masked)

@@ -56,3 +56,25 @@ def test_lk_tracks_through_an_exposure_step_only_with_gain_compensation():
     kept, err = results[True]
     assert kept > 0.95 and err < 0.1, results
     assert results[False][0] < kept - 0.2 or results[False][1] > 3 * err, results
+
+
+def test_a_revived_track_goes_on_under_its_old_id_and_a_live_id_cannot_be_revived():
+    import pytest
+
+    img = (_texture() * 255).astype(np.uint8)
+    tr = LKTracker()
+    tr.step(img)
+    ids = tr.add_points(_grid(320, 240))
+    moved = np.roll(img, 2, axis=1)
+    tr.step(moved)
+    tr.remove(ids[:5])
+    assert not np.isin(ids[:5], tr.live().ids).any()
+    pts = _grid(320, 240)[:5] + (2.0, 0.0)
+    assert tr.revive(ids[:5], pts)
+    upd = tr.step(np.roll(img, 4, axis=1))
+    back = np.isin(upd.ids, ids[:5]) & upd.visible
+    assert back.sum() == 5
+    got = upd.points[np.isin(upd.ids, ids[:5])]
+    assert np.abs(got - (pts + (2.0, 0.0))).max() < 0.2
+    with pytest.raises(ValueError):
+        tr.revive(ids[5:6], pts[:1])

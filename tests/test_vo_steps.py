@@ -441,3 +441,38 @@ def test_similarity_alignment_recovers_scale_rotation_and_translation():
     assert aligned_rms(src, dst) < 1e-12
     # A reflection is not a rotation: a mirrored set cannot be aligned exactly.
     assert aligned_rms(src * [1, 1, -1], dst) > 0.05
+
+
+def test_find_by_projection_finds_a_turned_landmark_near_its_prediction_and_nothing_else():
+    """A landmark lost for some frames is looked for where the pose puts it: the reference
+    patch, turned by the camera's roll, is fitted there; a prediction off by more than the gate
+    and a patch that is not in the image are refused."""
+    import cv2
+
+    from mona_vo.vo_steps import find_by_projection
+
+    r = np.random.default_rng(4)
+    ref = cv2.GaussianBlur(r.uniform(0, 255, (240, 320)).astype(np.float32), (0, 0), 2.0)
+    M = cv2.getRotationMatrix2D((160.0, 120.0), 8.0, 1.0)
+    M[:, 2] += (5.3, -2.6)                       # rolled 8 degrees and moved
+    H = np.vstack([M, [0.0, 0.0, 1.0]])
+    now = (0.7 * cv2.warpAffine(ref, M, (320, 240)) + 40.0).astype(np.uint8)   # exposure
+    uv_ref = r.uniform(80, 160, (25, 2)) + (40.0, 0.0)
+    truth = (np.c_[uv_ref, np.ones(len(uv_ref))] @ H.T)[:, :2]
+    off = r.normal(0, 1, truth.shape)
+    off *= 1.2 / np.linalg.norm(off, axis=1, keepdims=True)      # 1.2 px off
+    p, ok = find_by_projection(ref.astype(np.uint8), uv_ref, now, truth + off, H, half=10,
+                               max_px=2.0, min_ncc=0.8)
+    assert ok.all()
+    assert np.abs(p - truth).max() < 0.1
+    # 4 px off: the fit may well find the point, but so far from where the map puts it that it
+    # is another landmark's look-alike as likely as its own; refused.
+    far = truth + 4.0 * off / 1.2
+    _, ok_far = find_by_projection(ref.astype(np.uint8), uv_ref, now, far, H, half=10,
+                                   max_px=2.0, min_ncc=0.8)
+    assert not ok_far.any()
+    # An image the patches are not in.
+    other = cv2.GaussianBlur(r.uniform(0, 255, (240, 320)).astype(np.float32), (0, 0), 2.0)
+    _, ok_other = find_by_projection(ref.astype(np.uint8), uv_ref, other.astype(np.uint8),
+                                     truth + off, H, half=10, max_px=2.0, min_ncc=0.8)
+    assert ok_other.mean() < 0.1
