@@ -83,6 +83,7 @@ def align_patches(templates: np.ndarray, image: np.ndarray, uv: np.ndarray,
     image = np.asarray(image, np.float32)
     ncc = np.zeros(n)
     done = np.zeros(n, bool)
+    gave_up = np.zeros(n, bool)
     for _ in range(iterations):
         act = np.flatnonzero(~done)
         if not len(act):
@@ -102,7 +103,14 @@ def align_patches(templates: np.ndarray, image: np.ndarray, uv: np.ndarray,
         p[act] = pa - move
         A[act] = A_new
         done[act] = np.abs(move).max(axis=1) < tolerance_px
-    return p, ncc, done
+        # A fit that ran off the image (a flat patch, a look-alike far away) is given up
+        # unconverged: sampling it further would only overflow.
+        lost = ~np.isfinite(p[act]).all(axis=1) | ~np.isfinite(A[act]).all(axis=(1, 2)) \
+            | (np.abs(p[act]).max(axis=1) > 4 * max(image.shape))
+        if lost.any():
+            done[act[lost]] = True
+            gave_up[act[lost]] = True
+    return p, ncc, done & ~gave_up
 
 
 class Anchors:

@@ -147,6 +147,8 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
         "seconds": per_stage,
         "frames_per_second": {k: round(v, 2) for k, v in fps.items() if v is not None},
         "dropped": dict(vo.drops),
+        # Landmarks whose tracks were lost (hidden by a passer-by) and that were found again.
+        "landmarks_found_again": getattr(vo, "found_again", 0),
         # Translation evidence over the clip: rotation-free parallax vs the tracking noise floor.
         "parallax": getattr(vo, "parallax", None),
         "global_refinement": getattr(vo, "refine", None) or None,

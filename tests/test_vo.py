@@ -509,10 +509,14 @@ def test_tracks_held_to_their_first_look_do_not_drift_and_the_trajectory_gains(m
                 errors["after"].append(np.hypot(*(out.uv[i] - q)))
         return out
 
+    # Measured before stop 40's landmarks found again, which lower this scene's error without
+    # anchors (0.086 -> 0.069 %; with them 0.049 %): the option is judged on the VO it was
+    # built on.
+    before_stop_40 = dict(reacquire_keyframes=0, ba_outside_keyframes=0)
     monkeypatch.setattr(VisualOdometry, "_to_anchors", spy)
-    _, on = _run(scene, images, None, anchor_tracks=True)
+    _, on = _run(scene, images, None, anchor_tracks=True, **before_stop_40)
     monkeypatch.setattr(VisualOdometry, "_to_anchors", original)
-    _, off = _run(scene, images, None, anchor_tracks=False)
+    _, off = _run(scene, images, None, anchor_tracks=False, **before_stop_40)
     before, after = np.median(errors["before"]), np.median(errors["after"])
     assert len(errors["after"]) > 200 and after < 0.5 * before, (before, after)
     t = np.arange(len(images), dtype=float)
@@ -538,8 +542,8 @@ def _passer_by(images, width, start=2, speed=18):
 def test_landmarks_hidden_by_a_passer_by_are_found_again_where_they_are_and_the_error_falls(monkeypatch):
     # Static seeds 0-3 (480 x 204, 40 frames, true intrinsics) with a grey band sweeping across:
     # without the search by projection every landmark it passes over is gone for good, and the
-    # pose rests on points seeded after it. With vo.reacquire_keyframes=20 and
-    # vo.ba_outside_keyframes=8 the landmarks are tracked again once it has passed. Judged
+    # pose rests on points seeded after it. With it (vo.reacquire_keyframes=20 and
+    # vo.ba_outside_keyframes=8, the defaults) the landmarks are tracked again once it has passed. Judged
     # against the renderer (a landmark's pixel in the keyframe that last saw it, moved with the
     # true depth and poses). Measured: 50-115 landmarks found again per scene, median error
     # 0.04-0.19 px; ATE 0.073 / 0.284 / 0.124 / 0.126 -> 0.098 / 0.079 / 0.124 / 0.055 % of path
@@ -578,15 +582,16 @@ def test_landmarks_hidden_by_a_passer_by_are_found_again_where_they_are_and_the_
         images = _passer_by([r.image for r in rendered], 480)
         t = np.arange(len(images), dtype=float)
         ate = {}
-        for name, cfg in (("off", {}), ("on", dict(reacquire_keyframes=20, ba_outside_keyframes=8))):
+        for name, cfg in (("off", dict(reacquire_keyframes=0, ba_outside_keyframes=0)),
+                          ("on", dict(reacquire_keyframes=20, ba_outside_keyframes=8))):
             errors.clear()
             _, res = _run(scene, images, None, **cfg)
             ate[name] = evaluate_trajectory(Trajectory(t, state["G"]),
                                             Trajectory(t, res.poses)).ate_percent_of_path
             if name == "off":
-                assert "landmarks_reacquired" not in res.drops
+                assert res.found_again == 0
             else:
-                assert res.drops["landmarks_reacquired"] == len(errors) >= 40, seed
+                assert res.found_again == len(errors) >= 40, seed
                 assert np.median(errors) < 0.25, (seed, np.median(errors))
         ratios.append(ate["on"] / ate["off"])
     assert np.exp(np.mean(np.log(ratios))) < 0.8, ratios
@@ -626,5 +631,5 @@ def test_the_window_holds_its_landmarks_views_from_the_keyframes_before_it_fixed
         outside_seen += len(extra)
     assert outside_seen > 0
     problems.clear()
-    _run(scene, images, masks, refine="none", window_keyframes=3)
+    _run(scene, images, masks, refine="none", window_keyframes=3, ba_outside_keyframes=0)
     assert all(set(p.poses) == set(w) for p, _, w in problems)
