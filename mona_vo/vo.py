@@ -996,21 +996,16 @@ class VisualOdometry:
             anchor = (rows[0], rows[1], d)
         else:
             fixed = set(rows[:min(self.cfg.fixed_keyframes, len(rows) - 1)])
-            before = [r for r in range(max(0, rows[0] - self.cfg.ba_outside_keyframes), rows[0])
-                      if kf.segment[r] == m.segment]
-            if before:
-                idx = kf.observation_index(before)
-                o_kf, o_lm = kf.observation_rows(before), kf.obs_lm[idx]
-                sel = np.isin(o_lm, obs_lm) & ~kf.obs_masked[idx]
-                if sel.any():
-                    obs_kf = np.concatenate([obs_kf, o_kf[sel]])
-                    obs_lm = np.concatenate([obs_lm, o_lm[sel]])
-                    obs_uv = np.concatenate([obs_uv, kf.obs_uv[idx][sel].astype(np.float64)])
-                    obs_masked = np.concatenate(
-                        [obs_masked, (lm.flags[o_lm[sel]] & np.uint8(LandmarkFlag.MASKED)) > 0])
-                    extra = sorted(set(o_kf[sel].tolist()))
-                    rows_all = rows + extra
-                    fixed |= set(extra)
+            o_kf, o_lm, o_uv = self._views_before_window(rows[0], obs_lm)
+            if len(o_kf):
+                obs_kf = np.concatenate([obs_kf, o_kf])
+                obs_lm = np.concatenate([obs_lm, o_lm])
+                obs_uv = np.concatenate([obs_uv, o_uv])
+                obs_masked = np.concatenate(
+                    [obs_masked, (lm.flags[o_lm] & np.uint8(LandmarkFlag.MASKED)) > 0])
+                extra = sorted(set(o_kf.tolist()))
+                rows_all = rows + extra
+                fixed |= set(extra)
         uniq = np.unique(obs_lm)
         P = lm.positions(uniq)
         problem = BAProblem(
@@ -1047,6 +1042,19 @@ class VisualOdometry:
         if refine and res.focal is not None and len(m.window) >= self.cfg.window_keyframes:
             self._focal_fixed = res.focal
         self.timings["ba"] += time.perf_counter() - t0
+
+    def _views_before_window(self, first_row: int, window_lm: np.ndarray):
+        """(rows, landmark ids, pixels float64) of the unmasked observations of the landmarks
+        ``window_lm`` by the ``ba_outside_keyframes`` keyframes of this map before the window's
+        first keyframe ``first_row``: the window's bundle adjustment holds them with those
+        keyframes fixed, so a landmark keeps the views that fixed its depth."""
+        kf = self.map.keyframes
+        before = [r for r in range(max(0, first_row - self.cfg.ba_outside_keyframes), first_row)
+                  if kf.segment[r] == self.map.segment]
+        idx = kf.observation_index(before)
+        rows = kf.observation_rows(before)
+        sel = np.isin(kf.obs_lm[idx], window_lm) & ~kf.obs_masked[idx]
+        return rows[sel], kf.obs_lm[idx][sel], kf.obs_uv[idx][sel].astype(np.float64)
 
     # ----------------------------------------------------------------- global refinement
     def keyframe_graph(self):
