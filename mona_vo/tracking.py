@@ -177,13 +177,16 @@ class LKTracker(Tracker):
         points = np.asarray(points, np.float32).reshape(-1, 2)
         ids = np.arange(self._next_id, self._next_id + len(points), dtype=np.int64)
         self._next_id += len(points)
+        self._append(ids, points)
+        return ids
+
+    def _append(self, ids: np.ndarray, points: np.ndarray) -> None:
         self._ids = np.concatenate([self._ids, ids])
         self._pts = np.concatenate([self._pts, points])
         self._err = np.concatenate([self._err, np.zeros(len(points), np.float32)])
         # A new track starts with the typical motion of the others (the camera's, mostly).
         v0 = np.median(self._vel, axis=0) if len(self._vel) else np.zeros(2, np.float32)
         self._vel = np.concatenate([self._vel, np.tile(v0, (len(points), 1)).astype(np.float32)])
-        return ids
 
     def remove(self, ids: np.ndarray) -> None:
         keep = ~np.isin(self._ids, ids)
@@ -199,12 +202,7 @@ class LKTracker(Tracker):
         ids = np.asarray(ids, np.int64)
         if np.isin(ids, self._ids).any() or (len(ids) and ids.max() >= self._next_id):
             raise ValueError("revive takes ids this tracker handed out that are not live")
-        points = np.asarray(points, np.float32).reshape(-1, 2)
-        v0 = np.median(self._vel, axis=0) if len(self._vel) else np.zeros(2, np.float32)
-        self._ids = np.concatenate([self._ids, ids])
-        self._pts = np.concatenate([self._pts, points])
-        self._err = np.concatenate([self._err, np.zeros(len(points), np.float32)])
-        self._vel = np.concatenate([self._vel, np.tile(v0, (len(points), 1)).astype(np.float32)])
+        self._append(ids, np.asarray(points, np.float32).reshape(-1, 2))
         return True
 
     def step(self, image: np.ndarray) -> TrackUpdate:
