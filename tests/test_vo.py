@@ -547,7 +547,7 @@ def test_landmarks_hidden_by_a_passer_by_are_found_again_where_they_are_and_the_
     # against the renderer (a landmark's pixel in the keyframe that last saw it, moved with the
     # true depth and poses). Measured: 50-115 landmarks found again per scene, median error
     # 0.04-0.19 px; ATE 0.073 / 0.284 / 0.124 / 0.126 -> 0.098 / 0.079 / 0.124 / 0.055 % of path
-    # (geometric mean of the ratios 0.62; seed 0 loses).
+    # (geometric mean of the ratios 0.63; seed 0 loses).
     from eval.metrics import Trajectory, evaluate_trajectory
 
     original = VisualOdometry._reacquire
