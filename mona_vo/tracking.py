@@ -99,8 +99,8 @@ def track_forward_backward(prev: np.ndarray, nxt: np.ndarray, pts: np.ndarray, g
 
 class Tracker(ABC):
     """Frame-to-frame point tracker with persistent track ids. ``takes_corrections``: the back
-    end chains its tracks from frame to frame and :meth:`move` puts them where a caller measured
-    them better (False: ``move`` changes nothing)."""
+    end chains its tracks from frame to frame, :meth:`move` puts them where a caller measured
+    them better and :meth:`revive` starts a lost one again (False: both change nothing)."""
 
     takes_corrections = False
 

@@ -885,7 +885,8 @@ class VisualOdometry:
         limits: Bonn crowd). A landmark is not looked for inside a mask or an overlay, nor
         within ``reacquire_px`` of a live track (the same corner tracked under a new id)."""
         cfg = self.cfg
-        if cfg.reacquire_keyframes <= 0 or not self._kf_grays:
+        if (cfg.reacquire_keyframes <= 0 or not self._kf_grays
+                or not self.tracker.takes_corrections):   # it could not take them back
             return obs
         t0 = time.perf_counter()
         kf, lm = self.map.keyframes, self.map.landmarks

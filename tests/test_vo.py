@@ -595,6 +595,17 @@ def test_landmarks_hidden_by_a_passer_by_are_found_again_where_they_are_and_the_
                 assert np.median(errors) < 0.25, (seed, np.median(errors))
         ratios.append(ate["on"] / ate["off"])
     assert np.exp(np.mean(np.log(ratios))) < 0.8, ratios
+    # A tracker that cannot take a track back: no search, nothing found.
+    from mona_vo.tracking import LKTracker
+
+    class Fixed(LKTracker):
+        takes_corrections = False
+
+    vo = VisualOdometry(VOConfig(), scene.config.width, scene.config.height, scene.intrinsics,
+                        tracker=Fixed())
+    for i, image in enumerate(images):
+        vo.step(image, timestamp=float(i))
+    assert vo.finish().found_again == 0
 
 
 def test_the_window_holds_its_landmarks_views_from_the_keyframes_before_it_fixed(one_large, monkeypatch):
