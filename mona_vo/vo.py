@@ -861,8 +861,7 @@ class VisualOdometry:
         for row in np.unique(a.rows[ia]):
             if kf.segment[row] == self.map.segment:
                 sel = a.rows[ia] == row
-                R = (invert_pose(T_world_cam) @ kf.T_world_cam[row])[:3, :3]
-                H = intr.K @ R @ np.linalg.inv(kf.intrinsics(row).K)
+                H = self._turn_since(row, T_world_cam, intr)
                 deform[sel] = homography_jacobians(H, a.uv[ia[sel]])
         p, ncc, ok = align_patches(a.templates[ia], gray, obs.uv[io], deform, half=a.half)
         h, w = gray.shape
@@ -874,6 +873,13 @@ class VisualOdometry:
         self.tracker.move(obs.ids[io[ok]], p[ok])
         self.timings["anchoring"] += time.perf_counter() - t0
         return Observation(obs.ids, uv, obs.masked)
+
+    def _turn_since(self, row: int, T_world_cam, intr) -> np.ndarray:
+        """(3, 3) ``K R K_row^-1``: where keyframe ``row``'s pixels at infinity are seen from
+        the camera at T_world_cam, the turn a patch of that keyframe is deformed by."""
+        kf = self.map.keyframes
+        R = (invert_pose(T_world_cam) @ kf.T_world_cam[row])[:3, :3]
+        return intr.K @ R @ np.linalg.inv(kf.intrinsics(row).K)
 
     def _reacquire(self, gray, obs: Observation, T_world_cam, intr, mask) -> Observation:
         """Landmarks whose tracks were lost, seen unmasked by one of the last
@@ -900,7 +906,8 @@ class VisualOdometry:
         _, first = np.unique(ids[::-1], return_index=True)
         last = len(ids) - 1 - first
         ids, uv, row = ids[last], uv[last], row[last]
-        sel = lm.usable(ids) & ~np.isin(ids, self.tracker.live().ids) & ~np.isin(ids, obs.ids)
+        # obs holds every live track (the tracker ends the others), masked ones included.
+        sel = lm.usable(ids) & ~np.isin(ids, obs.ids)
         ids, uv, row = ids[sel], uv[sel], row[sel]
         proj, z = reproject(T_world_cam, lm.positions(ids), intr)
         h, w = gray.shape
@@ -908,28 +915,22 @@ class VisualOdometry:
         with np.errstate(invalid="ignore"):
             sel = (z > 0) & (proj[:, 0] >= b) & (proj[:, 0] <= w - 1 - b) \
                 & (proj[:, 1] >= b) & (proj[:, 1] <= h - 1 - b)
-        ids, uv, row, proj = ids[sel], uv[sel], row[sel], proj[sel]
         for m in (mask, self._occluded):
-            if m is not None and len(ids):
-                keep = ~pixels_in_mask(m, proj)
-                ids, uv, row, proj = ids[keep], uv[keep], row[keep], proj[keep]
-        if len(ids) and len(obs.uv):
-            d = cKDTree(obs.uv).query(proj)[0]
-            keep = d > cfg.reacquire_px
-            ids, uv, row, proj = ids[keep], uv[keep], row[keep], proj[keep]
-        found_ids, found_uv = [], []
+            if m is not None and sel.any():
+                sel[sel] = ~pixels_in_mask(m, proj[sel])
+        if sel.any() and len(obs.uv):
+            sel[sel] = cKDTree(obs.uv).query(proj[sel])[0] > cfg.reacquire_px
+        ids, uv, row, proj = ids[sel], uv[sel], row[sel], proj[sel]
+        found_ids, found_uv = [np.zeros(0, np.int64)], [np.zeros((0, 2))]
         for r in np.unique(row):
             sel = row == r
-            R = (invert_pose(T_world_cam) @ kf.T_world_cam[r])[:3, :3]
-            H = intr.K @ R @ np.linalg.inv(kf.intrinsics(r).K)
+            H = self._turn_since(r, T_world_cam, intr)
             p, ok = find_by_projection(self._kf_grays[r], uv[sel], gray, proj[sel], H,
                                        half=REACQUIRE_HALF_PX, max_px=cfg.reacquire_px,
                                        min_ncc=cfg.reacquire_min_ncc)
             found_ids.append(ids[sel][ok])
             found_uv.append(p[ok])
         self.timings["reacquire"] += time.perf_counter() - t0
-        if not found_ids:
-            return obs
         fid, fuv = np.concatenate(found_ids), np.concatenate(found_uv)
         if not len(fid) or not self.tracker.revive(fid, fuv):
             return obs
@@ -985,28 +986,28 @@ class VisualOdometry:
         keep = lm.has_position(obs_lm)
         keep[keep] = (lm.flags[obs_lm[keep]] & _OUT) == 0
         obs_kf, obs_lm, obs_uv, obs_masked = obs_kf[keep], obs_lm[keep], obs_uv[keep], obs_masked[keep]
+        minimal_gauge = bootstrapping or self.cfg.gauge == "distance"
+        extra = []
+        if not minimal_gauge:
+            o_kf, o_lm, o_uv = self._views_before_window(rows[0], obs_lm)
+            obs_kf = np.concatenate([obs_kf, o_kf])
+            obs_lm = np.concatenate([obs_lm, o_lm])
+            obs_uv = np.concatenate([obs_uv, o_uv])
+            obs_masked = np.concatenate([obs_masked, np.zeros(len(o_kf), bool)])
+            extra = sorted(set(o_kf.tolist()))
         # A landmark seen inside a mask at any frame counts as seen inside one here too.
         obs_masked = obs_masked | ((lm.flags[obs_lm] & np.uint8(LandmarkFlag.MASKED)) > 0)
         anchor = None
-        rows_all = rows
-        if bootstrapping or self.cfg.gauge == "distance":
+        if minimal_gauge:
             # The first window (built on the essential matrix) always takes the minimal gauge:
             # freezing two of its keyframes would freeze any error of the two-view solution.
             fixed = {rows[0]}
             d = float(np.linalg.norm(kf.T_world_cam[rows[1], :3, 3] - kf.T_world_cam[rows[0], :3, 3]))
             anchor = (rows[0], rows[1], d)
         else:
-            fixed = set(rows[:min(self.cfg.fixed_keyframes, len(rows) - 1)])
-            o_kf, o_lm, o_uv = self._views_before_window(rows[0], obs_lm)
-            if len(o_kf):
-                obs_kf = np.concatenate([obs_kf, o_kf])
-                obs_lm = np.concatenate([obs_lm, o_lm])
-                obs_uv = np.concatenate([obs_uv, o_uv])
-                obs_masked = np.concatenate(
-                    [obs_masked, (lm.flags[o_lm] & np.uint8(LandmarkFlag.MASKED)) > 0])
-                extra = sorted(set(o_kf.tolist()))
-                rows_all = rows + extra
-                fixed |= set(extra)
+            # The views from before the window are held where they are, as its oldest are.
+            fixed = set(rows[:min(self.cfg.fixed_keyframes, len(rows) - 1)]) | set(extra)
+        rows_all = rows + extra
         uniq = np.unique(obs_lm)
         P = lm.positions(uniq)
         problem = BAProblem(
