@@ -163,9 +163,10 @@ class VOConfig:
     anchor_tracks: bool = setting(False)    # at each keyframe, fit every track's patch as first
                                             # anchored (affine, mona_vo.patch_align) and move
                                             # the track there, so frame-to-frame drift does
-                                            # not add up. Off: the tuning parts gain,
-                                            # held-out creeps and Bonn's second half lose;
-                                            # README
+                                            # not add up. Off: on stop 40's VO Bonn gains in
+                                            # both halves (stop 41), but the masks then no
+                                            # longer lower the ATE of the central claim's
+                                            # test scene; creeps lose; README
     anchor_min_ncc: float = setting(0.8, ge=-1, le=1)  # ... when the fitted patch correlates
                                             # with its first look at least this much
     anchor_max_shift_px: float = setting(2.0, gt=0)  # ... and moves the track by at most this, px
