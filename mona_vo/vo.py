@@ -59,6 +59,13 @@ from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissi
                               predict_pose, refine_pose, rotation_free_parallax_px, segment_spans,
                               triangulate_against, typical_speed, typical_velocity, walk_back)
 
+
+def turn_homography(intr_b: Intrinsics, R_b_a: np.ndarray, intr_a: Intrinsics) -> np.ndarray:
+    """(3, 3) ``K_b R_b_a K_a^-1``: where camera a's pixels at infinity are seen by camera b,
+    turned by R_b_a (a's axes -> b's) since; the warp of a patch by the camera's turn alone."""
+    return intr_b.K @ R_b_a @ np.linalg.inv(intr_a.K)
+
+
 # Per-frame status strings (FrameStatus values), from most to least trustworthy.
 KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED = (
     s.value for s in FrameStatus)
@@ -880,7 +887,7 @@ class VisualOdometry:
         the camera at T_world_cam, the turn a patch of that keyframe is deformed by."""
         kf = self.map.keyframes
         R = (invert_pose(T_world_cam) @ kf.T_world_cam[row])[:3, :3]
-        return intr.K @ R @ np.linalg.inv(kf.intrinsics(row).K)
+        return turn_homography(intr, R, kf.intrinsics(row))
 
     def _reacquire(self, gray, obs: Observation, T_world_cam, intr, mask) -> Observation:
         """Landmarks whose tracks were lost, seen unmasked by one of the last
@@ -898,11 +905,10 @@ class VisualOdometry:
         t0 = time.perf_counter()
         kf, lm = self.map.keyframes, self.map.landmarks
         rows = [r for r in sorted(self._kf_grays) if kf.segment[r] == self.map.segment]
-        seen = [(kf.observations(r), r) for r in rows]
-        ids = np.concatenate([o[0][~o[2]] for o, _ in seen] or [np.zeros(0, np.int64)])
-        uv = np.concatenate([o[1][~o[2]] for o, _ in seen] or [np.zeros((0, 2))])
-        row = np.concatenate([np.full(np.count_nonzero(~o[2]), r) for o, r in seen]
-                             or [np.zeros(0, np.int64)])
+        idx = kf.observation_index(rows)
+        seen = ~kf.obs_masked[idx]
+        ids, uv = kf.obs_lm[idx][seen], kf.obs_uv[idx][seen].astype(np.float64)
+        row = kf.observation_rows(rows)[seen]
         # The last sighting of each landmark (rows are oldest first).
         _, first = np.unique(ids[::-1], return_index=True)
         last = len(ids) - 1 - first
@@ -964,7 +970,7 @@ class VisualOdometry:
     def _dissimilar(self, g0, uv0, intr0, gray, uv, intr, R_b_a) -> np.ndarray:
         """(N,) bool :func:`dissimilar_tracks` of tracks seen at uv0 in an earlier image g0 and
         at uv now, the camera having turned by R_b_a (earlier axes -> this frame's) since."""
-        H = intr.K @ R_b_a @ np.linalg.inv(intr0.K)
+        H = turn_homography(intr, R_b_a, intr0)
         return dissimilar_tracks(g0, uv0, gray, uv, H, self.cfg.patch_half_px,
                                  self.cfg.patch_dissimilarity)
 
