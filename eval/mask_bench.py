@@ -47,8 +47,13 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                    use_intrinsics: bool = False, mode: str = "boxes", calib: str = "estimate",
                    pipeline=None) -> list[dict]:
     """One row per (preset, seed): J (mean IoU), F, false-positive area fraction, mask and GT area
-    fractions, frames. The masker's camera: ``use_intrinsics`` passes the scene's true
-    intrinsics; else ``calib`` 'estimate' (default) the focal length `mona-vo masks` and `run`
+    fractions, frames; where the pixels go (:func:`eval.mask_metrics.error_parts`: ``found``,
+    ``spill``, ``apart`` as shares of the true masks' pixels, NaN without movers) and
+    ``frames_found``, the share of the frames with a mover in view whose mask touches it (NaN
+    without such frames): a low J from movers never found, from masks found late, or from masks
+    too large or elsewhere. The masker's camera: ``use_intrinsics`` or ``calib`` 'given' passes
+    the scene's true intrinsics; else ``calib`` 'estimate' (default) the focal length `mona-vo
+    masks` and `run`
     estimate from the first frames, as the product's masks get it
     (:func:`mona_vo.pipeline.camera_ahead` with ``pipeline``'s calibration settings, a
     PipelineConfig, default its defaults), or 'guess' its ``assumed_hfov_deg`` guess (the
@@ -58,8 +63,9 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
     (:func:`gt_box_masks`); 'gt-detector' the method with :class:`TrueBoxDetector`."""
     if mode not in SYNTHETIC_MODES:
         raise ValueError(f"mode {mode!r}: one of {', '.join(SYNTHETIC_MODES)}")
-    if calib not in ("guess", "estimate"):
-        raise ValueError(f"calib {calib!r}: one of guess, estimate")
+    if calib not in ("guess", "estimate", "given"):
+        raise ValueError(f"calib {calib!r}: one of guess, estimate, given")
+    use_intrinsics = use_intrinsics or calib == "given"
     from data_tools.synthetic import SceneConfig, SyntheticScene
     from mona_vo.pipeline import PipelineConfig, camera_ahead
 
@@ -98,18 +104,26 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                 backends = {"detector": TrueBoxDetector(gts)} if mode == "gt-detector" else {}
                 found = ((out.index, out.mask) for out in
                          compute_masks(frames(), config, intrinsics, **backends))
-            J, F, fp, area, gt_area = [], [], [], [], []
+            J, F, fp, area, gt_area, preds, truths = [], [], [], [], [], [], []
             for index, mask in found:
                 gt = gts.pop(index)
+                preds.append(mask)
+                truths.append(gt)
                 J.append(region_similarity(mask, gt))
                 F.append(boundary_f(mask, gt))
                 fp.append(float(np.mean(mask & ~gt)))
                 area.append(float(mask.mean()))
                 gt_area.append(float(gt.mean()))
+            parts = error_parts(preds, truths)
+            seen = [(p & g).any() for p, g in zip(preds, truths) if g.any()]
             rows.append({"preset": preset, "seed": seed, "frames": len(J),
                          "J": float(np.mean(J)), "F": float(np.mean(F)),
                          "fp_area": float(np.mean(fp)), "mask_area": float(np.mean(area)),
-                         "gt_area": float(np.mean(gt_area)), **extra})
+                         "gt_area": float(np.mean(gt_area)),
+                         "found": parts["found"], "spill": parts["spill"],
+                         "apart": parts["apart"],
+                         "frames_found": float(np.mean(seen)) if seen else float("nan"),
+                         **extra})
     return rows
 
 
@@ -338,10 +352,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--modes", default="boxes",
                         help="DAVIS prompt modes: boxes,points,raw-boxes,gt-boxes,gt-detector (the "
                              "generated scenes: one of boxes, gt-boxes, gt-detector)")
-    parser.add_argument("--calib", choices=("guess", "estimate"), default="estimate",
+    parser.add_argument("--calib", choices=("guess", "estimate", "given"), default="estimate",
                         help="the masker's camera, DAVIS and generated scenes: the focal length "
                              "`mona-vo masks` and `run` estimate (default) or the 60-degree "
-                             "field-of-view guess")
+                             "field-of-view guess; generated scenes also 'given', their true "
+                             "intrinsics (whether a focal error is what a mask misses)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one pipeline config value, e.g. --set "
                              "masks.evidence.decay=0.7 (repeatable; as `mona-vo masks --set`)")
@@ -360,6 +375,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     if "speed" in parts:
         print("== speed (ms per frame per stage) ==")
         print(format_table(speed_rows(config=config)), flush=True)
+    if args.calib == "given" and "davis" in parts:
+        parser.error("--calib given: DAVIS has no intrinsics; use it with --parts synthetic")
     if "davis" in parts and (SHARED_DATA / "davis2016").is_dir():
         rows = davis_rows(modes=tuple(args.modes.split(",")), config=config, calib=args.calib,
                           pipeline=pipeline)
