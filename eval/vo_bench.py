@@ -29,8 +29,10 @@ from data_tools.overlays import KINDS as OVERLAY_KINDS, add_overlay
 from data_tools.repeats import KINDS as REPEAT_KINDS, shown_images, shown_order
 from data_tools.synthetic import SceneConfig, SyntheticScene
 from eval.mask_metrics import region_similarity
+from eval.harness import draw_name
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
 from mona_vo.batch import clip_verdict
+from mona_vo.config import apply_overrides
 from mona_vo.errors import EvalError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 from mona_vo.run import clip_summary
@@ -125,8 +127,13 @@ def _nan_if_none(v) -> float:
 def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
               config: PipelineConfig | None = None, on_row=None, repeats: int = 1,
               calib: str = "given", bars: str | None = None,
-              frame_repeats: str | None = None, overlay: str | None = None) -> list[dict]:
-    """One row per preset x seed x variant x repeat. ``repeats`` > 1 runs each sequence again to
+              frame_repeats: str | None = None, overlay: str | None = None,
+              draws: list[dict[str, str]] | None = None) -> list[dict]:
+    """One row per preset x seed x variant x draw x repeat. ``draws``: config overrides, one
+    run of each per sequence and variant (:func:`eval.harness.parse_draws`; each row's ``draw``
+    names its override, "" without draws): on a scene where one run is one draw of the VO's
+    point grid, a variant's effect is read over the draws (:func:`draw_ratios`). ``repeats`` >
+    1 runs each sequence again to
     measure the run-to-run spread of one input (0 when the pipeline is deterministic);
     ``calib`` as in :func:`run_variant`; ``bars``: paint bars of this kind over every frame
     (:func:`data_tools.bars.add_bars`; the true masks keep the movers under the bars, which no
@@ -156,12 +163,15 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
                 masks = [masks[i] for i in (order if frame_repeats != "stutter" else range(len(order)))]
             coverage = float(np.mean([m.mean() for m in masks]))
             for variant in variants:
-                for repeat in range(repeats):
-                    row = {"preset": preset, "seed": seed, "repeat": repeat, "coverage": coverage,
-                           **run_variant(scene, frames, masks, variant, config, calib, gt_poses)}
-                    rows.append(row)
-                    if on_row is not None:
-                        on_row(row)
+                for draw in draws or [{}]:
+                    cfg = apply_overrides(config, draw) if draw else config
+                    for repeat in range(repeats):
+                        row = {"preset": preset, "seed": seed, "repeat": repeat,
+                               "draw": draw_name(draw), "coverage": coverage,
+                               **run_variant(scene, frames, masks, variant, cfg, calib, gt_poses)}
+                        rows.append(row)
+                        if on_row is not None:
+                            on_row(row)
             del frames, masks
     return rows
 
@@ -213,6 +223,58 @@ def summarize(rows: list[dict], baseline: str = "none") -> list[dict]:
                     "mask_ms_mean": float(np.mean([r["mask_ms_per_frame"] for r in sel])),
                     "all_frames_posed": all(r["frames_with_pose"] == r["frames"] for r in sel)})
     return out
+
+
+def draw_ratios(rows: list[dict], baseline: str = "none") -> tuple[list[dict], list[dict]]:
+    """A variant against the ``baseline`` over the draws of each sequence (first repeats):
+    per (preset, seed, variant), the median ATE % of path of either over the draws both scored,
+    the ratio of the medians and the worst paired ratio (the largest variant / baseline of one
+    draw); per variant, over the sequences, the geometric mean of the median ratios and how
+    many sequences have the variant clearly lower (median ratio < 0.9) and never clearly higher
+    (no draw above 1.1): the two bounds `tests/test_mask_temporal.py` asks of MONA on its one
+    scene. Returns (per sequence, per variant)."""
+    first = [r for r in rows if r.get("repeat", 0) == 0]
+    ate = {(r["preset"], r["seed"], r["variant"], r.get("draw", "")): r["ate_pct"] for r in first}
+    per_seq = []
+    for preset, seed, variant in dict.fromkeys((r["preset"], r["seed"], r["variant"]) for r in first):
+        if variant == baseline:
+            continue
+        pairs = [(ate[k], ate.get((preset, seed, baseline, k[3]), float("nan")))
+                 for k in ate if k[:3] == (preset, seed, variant)]
+        pairs = np.array([p for p in pairs if np.isfinite(p).all() and p[1] > 0]).reshape(-1, 2)
+        if not len(pairs):
+            continue
+        med_v, med_b = float(np.median(pairs[:, 0])), float(np.median(pairs[:, 1]))
+        per_seq.append({"preset": preset, "seed": seed, "variant": variant, "draws": len(pairs),
+                        "median_pct": med_v, "baseline_median_pct": med_b,
+                        "median_ratio": med_v / med_b,
+                        "worst_ratio": float(np.max(pairs[:, 0] / pairs[:, 1]))})
+    per_variant = []
+    for variant in dict.fromkeys(s["variant"] for s in per_seq):
+        sel = [s for s in per_seq if s["variant"] == variant]
+        lower = [s["median_ratio"] < 0.9 for s in sel]
+        never = [s["worst_ratio"] <= 1.1 for s in sel]
+        per_variant.append({"variant": variant, "sequences": len(sel),
+                            "gmean_median_ratio": float(np.exp(np.mean(np.log(
+                                [s["median_ratio"] for s in sel])))),
+                            "lower": int(sum(lower)), "never_higher": int(sum(never)),
+                            "both": int(sum(a and b for a, b in zip(lower, never)))})
+    return per_seq, per_variant
+
+
+def format_draw_ratios(per_seq: list[dict], per_variant: list[dict], baseline: str = "none") -> str:
+    lines = [f"{'preset':13s} {'seed':>4s} {'variant':11s} {'draws':>5s} {'median %':>9s} "
+             f"{baseline + ' median %':>14s} {'ratio':>6s} {'worst':>6s}"]
+    for s in per_seq:
+        lines.append(f"{s['preset']:13s} {s['seed']:4d} {s['variant']:11s} {s['draws']:5d} "
+                     f"{s['median_pct']:9.3f} {s['baseline_median_pct']:14.3f} "
+                     f"{s['median_ratio']:6.2f} {s['worst_ratio']:6.2f}")
+    for v in per_variant:
+        lines.append(f"{v['variant']} against {baseline}, over {v['sequences']} sequences: geometric "
+                     f"mean of the median ratios {v['gmean_median_ratio']:.2f}; median clearly lower "
+                     f"(< 0.9) on {v['lower']}, no draw clearly higher (<= 1.1) on "
+                     f"{v['never_higher']}, both on {v['both']}")
+    return "\n".join(lines)
 
 
 def verdict_quality(rows: list[dict], good_pct: float) -> dict:
@@ -282,16 +344,16 @@ def format_summary(summary: list[dict], baseline: str = "none") -> str:
 
 
 def compare_runs(base: list[dict], new: list[dict], flag: float = 0.05) -> tuple[list[dict], list[dict]]:
-    """Two benches' rows (``--out`` files), paired by preset, seed and variant: per pair the ATE
+    """Two benches' rows (``--out`` files), paired by preset, seed, variant and draw: per pair the ATE
     % of path and mask J before and after, and whether the ATE moved by more than ``flag`` (a
     share, on the log scale); per preset and variant, over the pairs scored in both, the
     geometric means, the mean paired log ratio with its standard error (a ratio within about two
     standard errors of 1 is no change: the fast turns move by factors either way) and the count
     lower. Returns (pairs, summary)."""
-    old = {(r["preset"], r["seed"], r["variant"]): r for r in base}
+    old = {(r["preset"], r["seed"], r["variant"], r.get("draw", "")): r for r in base}
     pairs = []
     for r in new:
-        b = old.get((r["preset"], r["seed"], r["variant"]))
+        b = old.get((r["preset"], r["seed"], r["variant"], r.get("draw", "")))
         if b is None:
             continue
         x, y = float(b["ate_pct"]), float(r["ate_pct"])
@@ -383,6 +445,9 @@ def main(argv=None) -> int:
                          "precision and recall (default 1)")
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of each sequence, to measure the run-to-run spread (default 1)")
+    ap.add_argument("--draws", action="append", default=[], metavar="KEY=V1,V2,...",
+                    help="run every sequence and variant once per value (repeatable, as `mona-vo "
+                         "eval tum --draws`), and read each variant against 'none' over the draws")
     args = ap.parse_args(argv)
     if args.compare:
         from mona_vo.errors import MonaVoError
@@ -396,16 +461,28 @@ def main(argv=None) -> int:
         return 0
     from mona_vo.config import load_config, parse_set_options
 
+    from eval.harness import parse_draws
+    from mona_vo.errors import MonaVoError
+
     w, h = (int(v) for v in args.size.split("x"))
     cfg = load_config(PipelineConfig, None, parse_set_options(args.set))
+    try:
+        draws = parse_draws(args.draws, cfg)
+    except MonaVoError as exc:
+        print(f"python -m eval.vo_bench: error: {exc}", file=sys.stderr)
+        return 1
     rows = benchmark(args.presets.split(","), parse_seeds(args.seeds), args.variants.split(","),
                      n_frames=args.frames, width=w, height=h, config=cfg,
                      on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats),
                      calib=args.calib, bars=args.bars, frame_repeats=args.frame_repeats,
-                     overlay=args.overlay)
+                     overlay=args.overlay, draws=draws)
     print()
     summary = summarize(rows)
     print(format_summary(summary))
+    ratios = draw_ratios(rows) if draws else ([], [])
+    if draws:
+        print()
+        print(format_draw_ratios(*ratios))
     verdicts = {v: verdict_quality([r for r in rows if r["variant"] == v], args.good_pct)
                 for v in dict.fromkeys(r["variant"] for r in rows)}
     for v, q in verdicts.items():
@@ -415,7 +492,9 @@ def main(argv=None) -> int:
 
         from data_tools.atomic import write_text_atomic
 
-        write_text_atomic(args.out, json.dumps({"rows": rows, "summary": summary, "verdict": verdicts},
+        write_text_atomic(args.out, json.dumps({"rows": rows, "summary": summary, "verdict": verdicts,
+                                                "draws": {"per_sequence": ratios[0],
+                                                          "per_variant": ratios[1]}},
                                                indent=1, default=float) + "\n")
     print(f"peak memory {peak_memory_mb():.0f} MB")
     return 0

@@ -328,6 +328,42 @@ def test_vo_bench_compare_pairs_two_runs_by_sequence(tmp_path):
     assert main(["--compare", str(tmp_path / "a.json"), str(tmp_path / "none.json")]) == 1
 
 
+def test_vo_bench_draws_read_a_variant_against_no_masks_over_each_sequences_draws(tmp_path, capsys):
+    """`python -m eval.vo_bench --draws KEY=V1,V2`: per sequence, the variant's and the
+    baseline's median ATE over the draws both scored, their ratio and the worst draw's ratio;
+    per variant, the geometric mean of the median ratios and the sequences where the variant is
+    clearly lower on the median (< 0.9) and never clearly higher in one draw (<= 1.1), the
+    central claim test's two bounds. Pairs are matched by draw, not by order; a draw the
+    baseline could not score is left out. A bad --draws is a one-line error."""
+    from eval.vo_bench import compare_runs, draw_ratios, main
+
+    def row(seed, variant, draw, ate):
+        return {"preset": "one-large", "seed": seed, "variant": variant, "draw": draw,
+                "repeat": 0, "ate_pct": ate}
+
+    rows = [row(0, "none", "g=1", 0.2), row(0, "none", "g=2", 5.0), row(0, "none", "g=3", 0.1),
+            row(0, "mona", "g=3", 0.1), row(0, "mona", "g=1", 0.1), row(0, "mona", "g=2", 0.15),
+            row(1, "none", "g=1", 0.2), row(1, "none", "g=2", float("nan")),
+            row(1, "mona", "g=1", 0.3), row(1, "mona", "g=2", 0.1)]
+    per_seq, per_variant = draw_ratios(rows)
+    a, b = per_seq
+    assert a["draws"] == 3 and a["median_pct"] == pytest.approx(0.1)
+    assert a["baseline_median_pct"] == pytest.approx(0.2) and a["median_ratio"] == pytest.approx(0.5)
+    assert a["worst_ratio"] == pytest.approx(1.0)           # g=3: 0.1 against 0.1
+    assert b["draws"] == 1 and b["median_ratio"] == pytest.approx(1.5)
+    v, = per_variant
+    assert v["sequences"] == 2 and v["lower"] == 1 and v["never_higher"] == 1 and v["both"] == 1
+    assert v["gmean_median_ratio"] == pytest.approx(np.sqrt(0.5 * 1.5))
+    # --compare pairs runs by draw too.
+    pairs, _ = compare_runs(rows, [dict(r, ate_pct=2 * r["ate_pct"]) for r in rows])
+    assert all(p["ate_pct_new"] == pytest.approx(2 * p["ate_pct_base"]) for p in pairs
+               if np.isfinite(p["ate_pct_base"]))
+    assert main(["--presets", "one-large", "--seeds", "0", "--draws", "vo.grid_size"]) == 1
+    assert main(["--presets", "one-large", "--seeds", "0", "--draws", "vo.no_such_key=1,2"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all("--draws" in e or "no_such_key" in e for e in err), err
+
+
 def test_draws_md_lists_only_the_parts_a_sequence_scored(tmp_path):
     """A part beyond a short sequence (Bonn's 53-frame clip beside its 450-frame part) scores
     nothing there and is no row of draws.md's part table."""
