@@ -372,11 +372,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         a, _, b = item.partition("-")
         seeds += list(range(int(a), int(b) + 1)) if b else [int(a)]
     w, h = (int(v) for v in args.size.split("x"))
+    if args.calib == "given" and "davis" in parts:
+        parser.error("--calib given: DAVIS has no intrinsics; use it with --parts synthetic")
     if "speed" in parts:
         print("== speed (ms per frame per stage) ==")
         print(format_table(speed_rows(config=config)), flush=True)
-    if args.calib == "given" and "davis" in parts:
-        parser.error("--calib given: DAVIS has no intrinsics; use it with --parts synthetic")
     if "davis" in parts and (SHARED_DATA / "davis2016").is_dir():
         rows = davis_rows(modes=tuple(args.modes.split(",")), config=config, calib=args.calib,
                           pipeline=pipeline)

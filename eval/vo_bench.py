@@ -29,11 +29,11 @@ from data_tools.overlays import KINDS as OVERLAY_KINDS, add_overlay
 from data_tools.repeats import KINDS as REPEAT_KINDS, shown_images, shown_order
 from data_tools.synthetic import SceneConfig, SyntheticScene
 from eval.mask_metrics import region_similarity
-from eval.harness import draw_name
+from eval.harness import draw_name, parse_draws
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
 from mona_vo.batch import clip_verdict
 from mona_vo.config import apply_overrides
-from mona_vo.errors import EvalError
+from mona_vo.errors import EvalError, MonaVoError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 from mona_vo.run import clip_summary
 
@@ -233,14 +233,17 @@ def draw_ratios(rows: list[dict], baseline: str = "none") -> tuple[list[dict], l
     many sequences have the variant clearly lower (median ratio < 0.9) and never clearly higher
     (no draw above 1.1): the two bounds `tests/test_mask_temporal.py` asks of MONA on its one
     scene. Returns (per sequence, per variant)."""
-    first = [r for r in rows if r.get("repeat", 0) == 0]
-    ate = {(r["preset"], r["seed"], r["variant"], r.get("draw", "")): r["ate_pct"] for r in first}
+    by_run: dict[tuple, dict[str, float]] = {}     # (preset, seed, variant) -> draw -> ATE %
+    for r in rows:
+        if r.get("repeat", 0) == 0:
+            by_run.setdefault((r["preset"], r["seed"], r["variant"]), {})[r.get("draw", "")] = \
+                r["ate_pct"]
     per_seq = []
-    for preset, seed, variant in dict.fromkeys((r["preset"], r["seed"], r["variant"]) for r in first):
+    for (preset, seed, variant), ate in by_run.items():
         if variant == baseline:
             continue
-        pairs = [(ate[k], ate.get((preset, seed, baseline, k[3]), float("nan")))
-                 for k in ate if k[:3] == (preset, seed, variant)]
+        base = by_run.get((preset, seed, baseline), {})
+        pairs = [(a, base.get(d, float("nan"))) for d, a in ate.items()]
         pairs = np.array([p for p in pairs if np.isfinite(p).all() and p[1] > 0]).reshape(-1, 2)
         if not len(pairs):
             continue
@@ -450,8 +453,6 @@ def main(argv=None) -> int:
                          "eval tum --draws`), and read each variant against 'none' over the draws")
     args = ap.parse_args(argv)
     if args.compare:
-        from mona_vo.errors import MonaVoError
-
         try:
             rows = [_read_rows(f) for f in args.compare]
         except MonaVoError as exc:
@@ -460,9 +461,6 @@ def main(argv=None) -> int:
         print(format_comparison(*compare_runs(*rows)))
         return 0
     from mona_vo.config import load_config, parse_set_options
-
-    from eval.harness import parse_draws
-    from mona_vo.errors import MonaVoError
 
     w, h = (int(v) for v in args.size.split("x"))
     cfg = load_config(PipelineConfig, None, parse_set_options(args.set))
