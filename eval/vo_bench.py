@@ -38,10 +38,13 @@ from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 from mona_vo.run import clip_summary
 
 
-def render_sequence(preset: str, seed: int, n_frames: int, width: int, height: int):
-    """(scene, frames, gt masks) of one generated sequence, rendered once, kept in memory."""
+def render_sequence(preset: str, seed: int, n_frames: int, width: int, height: int,
+                    effects: bool = True):
+    """(scene, frames, gt masks) of one generated sequence, rendered once, kept in memory.
+    ``effects=False``: the frames before the image effects (``mixed``: blur, noise, exposure,
+    JPEG), the same geometry, so what the effects cost can be read apart."""
     scene = SyntheticScene(SceneConfig(width=width, height=height, n_frames=n_frames,
-                                       preset=preset, seed=seed))
+                                       preset=preset, seed=seed, effects=effects))
     frames, masks = [], []
     for r in scene:
         frames.append(Frame(r.index, float(r.index), f"{r.index:05d}", r.image))
@@ -128,7 +131,7 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
               config: PipelineConfig | None = None, on_row=None, repeats: int = 1,
               calib: str = "given", bars: str | None = None,
               frame_repeats: str | None = None, overlay: str | None = None,
-              draws: list[dict[str, str]] | None = None) -> list[dict]:
+              draws: list[dict[str, str]] | None = None, effects: bool = True) -> list[dict]:
     """One row per preset x seed x variant x draw x repeat. ``draws``: config overrides, one
     run of each per sequence and variant (:func:`eval.harness.parse_draws`; each row's ``draw``
     names its override, "" without draws): on a scene where one run is one draw of the VO's
@@ -140,7 +143,8 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
     mask can find); ``frame_repeats``: show the frames with repeats of this kind
     (:mod:`data_tools.repeats`; each shown frame's true pose and mask are those of the frame
     shown, but for ``stutter``, whose held frame keeps its own time's); ``overlay``: burn in
-    an overlay of this kind (:func:`data_tools.overlays.add_overlay`)."""
+    an overlay of this kind (:func:`data_tools.overlays.add_overlay`); ``effects=False``:
+    the ``mixed`` frames before their image effects (:func:`render_sequence`)."""
     config = config or PipelineConfig()
     if bars and "gt-detector" in variants:
         # The masker sees the picture inside the bars; the true boxes are the full frame's.
@@ -148,7 +152,7 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
     rows = []
     for preset in presets:
         for seed in seeds:
-            scene, frames, masks = render_sequence(preset, seed, n_frames, width, height)
+            scene, frames, masks = render_sequence(preset, seed, n_frames, width, height, effects)
             if bars:
                 frames = [Frame(f.index, f.timestamp, f.name, add_bars(f.image, bars)) for f in frames]
             if overlay:
@@ -443,6 +447,9 @@ def main(argv=None) -> int:
     ap.add_argument("--frame-repeats", choices=REPEAT_KINDS,
                     help="show the frames with repeats of this kind (data_tools.repeats), as "
                          "online videos carry them")
+    ap.add_argument("--effects", choices=("on", "off"), default="on",
+                    help="off: the `mixed` frames before their image effects (blur, noise, "
+                         "exposure, JPEG), the same geometry (default on)")
     ap.add_argument("--good-pct", type=float, default=1.0,
                     help="a trajectory within this ATE (%% of path) is good, for the verdict's "
                          "precision and recall (default 1)")
@@ -473,7 +480,7 @@ def main(argv=None) -> int:
                      n_frames=args.frames, width=w, height=h, config=cfg,
                      on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats),
                      calib=args.calib, bars=args.bars, frame_repeats=args.frame_repeats,
-                     overlay=args.overlay, draws=draws)
+                     overlay=args.overlay, draws=draws, effects=args.effects == "on")
     print()
     summary = summarize(rows)
     print(format_summary(summary))

@@ -44,3 +44,21 @@ def test_track_bench_refuses_bad_arguments_in_one_line(argv, needle, capsys):
     assert track_bench.main(argv + ["--quiet"]) == 1
     err = capsys.readouterr().err.strip()
     assert needle in err and "\n" not in err, err
+
+
+def test_vo_bench_renders_the_same_geometry_without_the_effects():
+    # eval.vo_bench --effects off: the frames the effects start from (image_clean), with the
+    # same poses and masks, so a trajectory with and without blur and noise can be compared.
+    from data_tools.synthetic import SceneConfig, SyntheticScene
+    from eval.vo_bench import render_sequence
+
+    scene, frames, masks = render_sequence("mixed", 3, 4, 160, 68, effects=False)
+    _, blurred, masks_on = render_sequence("mixed", 3, 4, 160, 68)
+    truth = list(SyntheticScene(SceneConfig(width=160, height=68, n_frames=4, preset="mixed", seed=3)))
+    for f, b, r, m, m_on in zip(frames, blurred, truth, masks, masks_on):
+        np.testing.assert_array_equal(f.image, r.image_clean)
+        np.testing.assert_array_equal(b.image, r.image)
+        np.testing.assert_array_equal(m, m_on)
+        assert np.abs(f.image.astype(int) - b.image).mean() > 1.0
+    np.testing.assert_array_equal(scene.poses(), SyntheticScene(SceneConfig(
+        width=160, height=68, n_frames=4, preset="mixed", seed=3)).poses())
