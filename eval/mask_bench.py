@@ -45,7 +45,7 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
                    seeds: Sequence[int] = (0, 1, 2), n_frames: int = 30, width: int = 1024,
                    height: int = 436, config: MaskConfig | None = None,
                    use_intrinsics: bool = False, mode: str = "boxes", calib: str = "estimate",
-                   pipeline=None) -> list[dict]:
+                   pipeline=None, effects: bool = True) -> list[dict]:
     """One row per (preset, seed): J (mean IoU), F, false-positive area fraction, mask and GT area
     fractions, frames; where the pixels go (:func:`eval.mask_metrics.error_parts`: ``found``,
     ``spill``, ``apart`` as shares of the true masks' pixels, NaN without movers) and
@@ -58,7 +58,8 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
     (:func:`mona_vo.pipeline.camera_ahead` with ``pipeline``'s calibration settings, a
     PipelineConfig, default its defaults), or 'guess' its ``assumed_hfov_deg`` guess (the
     bench's camera before stop 38). Rows of the method carry ``focal_error_pct``, the camera's
-    focal length against the scene's, per cent. ``mode``: 'boxes' the
+    focal length against the scene's, per cent. ``effects=False``: the ``mixed`` frames before
+    their image effects (blur, noise, exposure, JPEG), the same scenes. ``mode``: 'boxes' the
     method; 'gt-boxes' the segmenter alone, prompted with the true masks' part boxes
     (:func:`gt_box_masks`); 'gt-detector' the method with :class:`TrueBoxDetector`."""
     if mode not in SYNTHETIC_MODES:
@@ -75,7 +76,7 @@ def synthetic_rows(presets: Sequence[str] = ("static",) + DYNAMIC_PRESETS,
     for preset in presets:
         for seed in seeds:
             scene = SyntheticScene(SceneConfig(width=width, height=height, n_frames=n_frames,
-                                               preset=preset, seed=seed))
+                                               preset=preset, seed=seed, effects=effects))
             gts: dict[int, np.ndarray] = {}
 
             def frames():
@@ -357,6 +358,9 @@ def main(argv: Sequence[str] | None = None) -> None:
                              "`mona-vo masks` and `run` estimate (default) or the 60-degree "
                              "field-of-view guess; generated scenes also 'given', their true "
                              "intrinsics (whether a focal error is what a mask misses)")
+    parser.add_argument("--effects", choices=("on", "off"), default="on",
+                        help="generated scenes: off renders the `mixed` frames before their image "
+                             "effects (blur, noise, exposure, JPEG), the same scenes (default on)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one pipeline config value, e.g. --set "
                              "masks.evidence.decay=0.7 (repeatable; as `mona-vo masks --set`)")
@@ -392,7 +396,8 @@ def main(argv: Sequence[str] | None = None) -> None:
                          f"{', '.join(SYNTHETIC_MODES)}")
         rows = synthetic_rows(presets=tuple(args.presets.split(",")), seeds=seeds,
                               n_frames=args.frames, width=w, height=h, config=config,
-                              mode=args.modes, calib=args.calib, pipeline=pipeline)
+                              mode=args.modes, calib=args.calib, pipeline=pipeline,
+                              effects=args.effects == "on")
         print("\n== synthetic scenes, per seed ==")
         print(format_table(rows))
         print("\n== synthetic scenes, per preset (J = mean IoU; static: fp_area) ==")

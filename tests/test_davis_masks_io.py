@@ -196,3 +196,26 @@ def test_generated_mask_rows_say_where_the_pixels_go():
     missed, = synthetic_rows(("several",), (1,), calib="given", **kw)
     assert missed["focal_error_pct"] == 0.0
     assert missed["found"] < 0.05 and missed["frames_found"] < 0.2, missed
+
+
+def test_the_generated_mask_bench_renders_without_the_effects_when_asked(monkeypatch):
+    """`python -m eval.mask_bench --parts synthetic --effects off` scores the masks of the same
+    scenes before their image effects (blur, noise, exposure, JPEG), to read what the effects
+    cost the masks; the default keeps them."""
+    from eval import mask_bench
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake(**kw):
+        seen.append(kw)
+        raise Stop
+
+    monkeypatch.setattr(mask_bench, "synthetic_rows", fake)
+    base = ["--parts", "synthetic", "--presets", "mixed", "--seeds", "3", "--frames", "4", "--size", "64x32"]
+    for extra, want in (([], True), (["--effects", "off"], False), (["--effects", "on"], True)):
+        with pytest.raises(Stop):
+            mask_bench.main(base + extra)
+        assert seen[-1]["effects"] is want, (extra, seen[-1])
