@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -25,7 +26,7 @@ from data_tools.synthetic import SceneConfig, SyntheticScene
 from eval.vo_bench import parse_seeds
 from mona_vo.conventions import Intrinsics, pixels_in_mask, reproject, transform_points, unproject
 from mona_vo.errors import MonaVoError
-from mona_vo.point_selection import adaptive_min_score, grid_points, texture_score
+from mona_vo.point_selection import seed_points
 from mona_vo.tracking import TRACKERS, Tracker, to_gray
 from mona_vo.vo import VOConfig
 
@@ -48,8 +49,6 @@ def true_pixels(depth0: np.ndarray, uv0: np.ndarray, T0: np.ndarray, T: np.ndarr
 def seedable(depth: np.ndarray, object_id: np.ndarray, uv: np.ndarray, margin: int = 5) -> np.ndarray:
     """(N,) bool: start pixels on static surface, ``margin`` px clear of any mover and off depth
     edges (:data:`EDGE_REL`)."""
-    import cv2
-
     k = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
     near_mover = cv2.dilate((object_id > 0).astype(np.uint8), k) > 0
     kernel = np.ones((5, 5), np.uint8)
@@ -70,10 +69,8 @@ def measure_sequence(rendered: list, poses: np.ndarray, intr: Intrinsics, make_t
         if k0 + max_age >= len(rendered):
             continue
         r0 = rendered[k0]
-        gray = to_gray(r0.image)
-        score = texture_score(gray, VO.point_score)
-        floor = adaptive_min_score(score, VO.point_min_score, VO.point_quality)
-        uv = grid_points(score, VO.grid_size, VO.grid_size, min_score=floor)
+        uv = seed_points(to_gray(r0.image), VO.grid_size, VO.point_score, VO.point_min_score,
+                         VO.point_quality)
         uv = uv[seedable(r0.depth, r0.object_id, uv)].astype(np.float64)
         if not len(uv):
             continue
@@ -154,7 +151,8 @@ def main(argv=None) -> int:
     ap.add_argument("--starts", default="0,8", help="frames where tracks are seeded (default 0,8)")
     ap.add_argument("--max-age", type=int, default=8, help="frames each track is followed (default 8)")
     ap.add_argument("--tracker", default="lk", choices=list(TRACKERS.names()),
-                    help="the tracker back end (classical ones only: no checkpoint is taken here)")
+                    help="the tracker back end (a neural one reads its checkpoint from "
+                         "$MONA_VO_WEIGHTS)")
     ap.add_argument("--out", metavar="FILE", help="also write the rows as JSON here")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)

@@ -35,6 +35,17 @@ def adaptive_min_score(score: np.ndarray, floor: float, quality: float) -> float
     return max(float(floor), min(TRACKABLE_SCORE, float(quality) * top))
 
 
+def seed_points(gray: np.ndarray, grid: int, kind: str, floor: float, quality: float, *,
+                exclude: np.ndarray | None = None, occupied: np.ndarray | None = None) -> np.ndarray:
+    """New points where the VO seeds them: on a ``grid`` x ``grid`` grid the best-scored pixel
+    (:func:`texture_score` ``kind``) of each cell, at least the frame's
+    :func:`adaptive_min_score` (``floor``, ``quality``); ``exclude`` and ``occupied`` as in
+    :func:`grid_points`. Returns (N, 2) float32 pixels x, y."""
+    score = texture_score(gray, kind)
+    return grid_points(score, grid, grid, exclude=exclude, occupied=occupied,
+                       min_score=adaptive_min_score(score, floor, quality))
+
+
 def grid_points(score: np.ndarray, cols: int, rows: int, *, border: int = 8,
                 exclude: np.ndarray | None = None, occupied: np.ndarray | None = None,
                 min_score: float = TRACKABLE_SCORE) -> np.ndarray:

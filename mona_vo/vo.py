@@ -48,7 +48,7 @@ from mona_vo.conventions import Intrinsics, invert_pose, make_pose, pixels_in_ma
 from mona_vo.errors import ConfigError
 from mona_vo.geometry import homography_jacobians, reprojection_residuals
 from mona_vo.patch_align import Anchors, align_patches
-from mona_vo.point_selection import adaptive_min_score, grid_points, texture_score
+from mona_vo.point_selection import seed_points
 from mona_vo.tracking import LKTracker, Tracker, to_gray
 from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose, rotation_only,
                               rotation_parallax_deg, translation_spread_deg, triangulate)
@@ -501,16 +501,13 @@ class VisualOdometry:
         self.timings["parallax"] += time.perf_counter() - t0
 
     def _new_points(self, gray, obs: Observation, mask) -> tuple[np.ndarray, np.ndarray]:
-        score = texture_score(gray, self.cfg.point_score)
         exclude = self._occluded
         if mask is not None and mask.any():
             k = 2 * self.cfg.mask_dilate_px + 1
             exclude = cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
             exclude = exclude if self._occluded is None else exclude | self._occluded
-        k = self.cfg.grid_size
-        min_score = adaptive_min_score(score, self.cfg.point_min_score, self.cfg.point_quality)
-        pts = grid_points(score, k, k, exclude=exclude, occupied=self._static(obs).uv,
-                          min_score=min_score)
+        pts = seed_points(gray, self.cfg.grid_size, self.cfg.point_score, self.cfg.point_min_score,
+                          self.cfg.point_quality, exclude=exclude, occupied=self._static(obs).uv)
         new_ids = self.tracker.add_points(pts) if len(pts) else np.zeros(0, np.int64)
         return np.asarray(new_ids, np.int64), pts.astype(np.float64)
 
