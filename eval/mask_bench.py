@@ -371,11 +371,19 @@ def main(argv: Sequence[str] | None = None) -> None:
     pipeline = load_config(PipelineConfig, None, parse_set_options(args.set))
     config = pipeline.masks
     parts = set(args.parts.split(","))
-    seeds: list[int] = []
-    for item in (x.strip() for x in args.seeds.split(",") if x.strip()):
-        a, _, b = item.partition("-")
-        seeds += list(range(int(a), int(b) + 1)) if b else [int(a)]
-    w, h = (int(v) for v in args.size.split("x"))
+    from eval.vo_bench import parse_seeds
+    from mona_vo.errors import ConfigError
+
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ConfigError as exc:
+        parser.error(str(exc))
+    try:
+        w, h = (int(v) for v in args.size.split("x"))
+        if w < 16 or h < 16:
+            raise ValueError
+    except ValueError:
+        parser.error(f"--size expects WIDTHxHEIGHT of at least 16x16 pixels, not '{args.size}'")
     if args.calib == "given" and "davis" in parts:
         parser.error("--calib given: DAVIS has no intrinsics; use it with --parts synthetic")
     if "speed" in parts:

@@ -219,3 +219,20 @@ def test_the_generated_mask_bench_renders_without_the_effects_when_asked(monkeyp
         with pytest.raises(Stop):
             mask_bench.main(base + extra)
         assert seen[-1]["effects"] is want, (extra, seen[-1])
+
+
+@pytest.mark.parametrize("flag,value", [("--seeds", "3-1"), ("--seeds", "a"), ("--size", "64"),
+                                        ("--size", "8x8")])
+def test_the_mask_bench_refuses_bad_seeds_and_sizes_in_one_line(flag, value, capsys):
+    """A bad --seeds or --size is a one-line usage error naming the flag, before anything runs
+    (it read the seeds with its own loop before, and a typo ended in a traceback)."""
+    from eval import mask_bench
+
+    argv = ["--parts", "synthetic", "--presets", "mixed", "--seeds", "3", "--size", "64x32"]
+    argv[argv.index(flag) + 1] = value
+    with pytest.raises(SystemExit) as exit_info:
+        mask_bench.main(argv)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("python -m eval.mask_bench: error: " + flag), err
+    assert value in err[-1]
