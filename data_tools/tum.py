@@ -7,7 +7,6 @@ Timestamps are seconds (or frame numbers for datasets without times).
 """
 from __future__ import annotations
 
-import logging
 import math
 import os
 import re
@@ -20,8 +19,7 @@ from data_tools.atomic import write_text_atomic
 from data_tools.frames import FrameSource, ImageFiles, write_image
 from mona_vo.conventions import Intrinsics, pose_from_tum_row, tum_row
 from mona_vo.errors import InputError
-
-log = logging.getLogger(__name__)
+from mona_vo.lens import COEFFICIENTS, Distortion, camera
 
 _SEPARATORS = re.compile(r"[,\s]+")
 
@@ -138,11 +136,10 @@ def read_rgb_list(path: str | os.PathLike) -> list[tuple[float, str]]:
 def read_calib_txt(path: str | os.PathLike) -> Intrinsics:
     """Intrinsics from a ``calib.txt`` whose first data line holds ``fx fy cx cy`` (pixels).
 
-    A leading label ('K:', 'intrinsics') is ignored, and so are numbers after the fourth
-    (DPVO-style files append distortion k1 k2 p1 p2; mona-vo assumes undistorted images), but
-    not silently: non-zero ones are logged as a warning naming the file, since the frames then
-    carry a lens distortion the pinhole model leaves in every track (Bonn's published k1, k2 move
-    a pixel 0.7 px at the median and 3.8 px at the corners).
+    A leading label ('K:', 'intrinsics') is ignored. Up to five numbers after the fourth are the
+    lens distortion in OpenCV's order (DPVO's ``k1 k2 p1 p2``, TUM's ``d0 d1 d2 d3 d4``): with
+    any of them non-zero the result is a :class:`mona_vo.lens.LensIntrinsics`, whose frames a run
+    undistorts before reading them.
     """
     path = Path(path)
     for lineno, line in enumerate(_read_lines(path), start=1):
@@ -158,13 +155,16 @@ def read_calib_txt(path: str | os.PathLike) -> Intrinsics:
         problems = intr.check()
         if problems:
             raise InputError(f"{path}:{lineno}: {problems[0]}")
-        rest = [float(f) for f in fields[4:] if _is_number(f)]
-        if any(v != 0.0 for v in rest):
-            log.warning("%s:%d: the numbers after fx fy cx cy (%s) are lens distortion, which "
-                        "mona-vo does not model: they are ignored; undistort the frames first "
-                        "(cv2.undistort) or the trajectory keeps that error", path, lineno,
-                        " ".join(f"{v:g}" for v in rest))
-        return intr
+        rest = fields[4:]
+        if len(rest) > len(COEFFICIENTS) or not all(_is_number(f) for f in rest):
+            raise InputError(f"{path}:{lineno}: expected 'fx fy cx cy' and at most "
+                             f"{len(COEFFICIENTS)} distortion coefficients "
+                             f"({' '.join(COEFFICIENTS)}), got {text[:60]!r}")
+        cam = camera(intr, Distortion.from_numbers(rest))
+        problems = cam.check()
+        if problems:
+            raise InputError(f"{path}:{lineno}: {problems[0]}")
+        return cam
     raise InputError(f"{path}: no 'fx fy cx cy' line")
 
 

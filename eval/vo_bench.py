@@ -34,6 +34,7 @@ from eval.metrics import RotationMetrics, Trajectory, score_trajectory
 from mona_vo.batch import clip_verdict
 from mona_vo.config import apply_overrides
 from mona_vo.errors import EvalError, MonaVoError
+from mona_vo.lens import Distortion, LensIntrinsics, Undistortion
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 from mona_vo.run import clip_summary
 
@@ -53,9 +54,12 @@ def render_sequence(preset: str, seed: int, n_frames: int, width: int, height: i
 
 
 def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
-                calib: str = "given", gt_poses: np.ndarray | None = None) -> dict:
-    """One run. ``calib``: ``given`` passes the scene's true intrinsics; ``estimate`` passes
-    none, as `mona-vo run` without --calib (the focal length is estimated, or guessed).
+                calib: str = "given", gt_poses: np.ndarray | None = None,
+                camera=None) -> dict:
+    """One run. ``calib``: ``given`` passes the scene's true intrinsics (``camera`` when the
+    frames were seen through a lens: a LensIntrinsics); ``pinhole`` the true fx, fy, cx, cy
+    without the lens (a run that ignores the distortion); ``estimate`` passes none, as `mona-vo
+    run` without --calib (the focal length is estimated, or guessed).
     ``gt_poses``: the true pose of each frame when it is not the scene's (repeated frames)."""
     masks = {"none": None, "gt": list(gt_masks), "mona": "mona", "gt-detector": "mona"}[variant]
     detector = None
@@ -73,7 +77,8 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
             quality["mask_fp"].append(float(np.mean(out.mask & ~gt_mask)))
 
     t0 = time.perf_counter()
-    result = estimate_trajectory(frames, intrinsics=scene.intrinsics if calib == "given" else None,
+    intrinsics = {"given": camera or scene.intrinsics, "pinhole": scene.intrinsics}.get(calib)
+    result = estimate_trajectory(frames, intrinsics=intrinsics,
                                  masks=masks, config=config, on_frame=judge, detector=detector)
     wall = time.perf_counter() - t0
     gt = Trajectory(np.arange(len(frames), dtype=float),
@@ -95,7 +100,7 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     n = len(frames)
     # The verdict `batch` would give this clip, from the report `run` would write.
     summary = clip_summary(result, name=f"generated/{variant}", masks=variant, config=config,
-                           calib_given=calib == "given")
+                           calib_given=intrinsics is not None)
     verdict = clip_verdict(summary)
     vo_seconds = sum(v for k, v in result.timings.items() if k.startswith("vo."))
     mask_seconds = sum(v for k, v in result.timings.items() if k.startswith("masks."))
@@ -131,7 +136,8 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
               config: PipelineConfig | None = None, on_row=None, repeats: int = 1,
               calib: str = "given", bars: str | None = None,
               frame_repeats: str | None = None, overlay: str | None = None,
-              draws: list[dict[str, str]] | None = None, effects: bool = True) -> list[dict]:
+              draws: list[dict[str, str]] | None = None, effects: bool = True,
+              lens=None) -> list[dict]:
     """One row per preset x seed x variant x draw x repeat. ``draws``: config overrides, one
     run of each per sequence and variant (:func:`eval.harness.parse_draws`; each row's ``draw``
     names its override, "" without draws): on a scene where one run is one draw of the VO's
@@ -144,7 +150,9 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
     (:mod:`data_tools.repeats`; each shown frame's true pose and mask are those of the frame
     shown, but for ``stutter``, whose held frame keeps its own time's); ``overlay``: burn in
     an overlay of this kind (:func:`data_tools.overlays.add_overlay`); ``effects=False``:
-    the ``mixed`` frames before their image effects (:func:`render_sequence`)."""
+    the ``mixed`` frames before their image effects (:func:`render_sequence`); ``lens``: a
+    :class:`mona_vo.lens.Distortion` the frames (and true masks) are seen through, the true
+    camera then a LensIntrinsics (``calib="pinhole"`` leaves the lens out)."""
     config = config or PipelineConfig()
     if bars and "gt-detector" in variants:
         # The masker sees the picture inside the bars; the true boxes are the full frame's.
@@ -153,6 +161,13 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
     for preset in presets:
         for seed in seeds:
             scene, frames, masks = render_sequence(preset, seed, n_frames, width, height, effects)
+            camera = None
+            if lens is not None and not lens.is_zero:
+                k = scene.intrinsics
+                camera = LensIntrinsics(k.fx, k.fy, k.cx, k.cy, lens)
+                und = Undistortion(camera)
+                frames = [Frame(f.index, f.timestamp, f.name, und.distort(f.image)) for f in frames]
+                masks = [und.unmask(m) for m in masks]
             if bars:
                 frames = [Frame(f.index, f.timestamp, f.name, add_bars(f.image, bars)) for f in frames]
             if overlay:
@@ -172,7 +187,8 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
                     for repeat in range(repeats):
                         row = {"preset": preset, "seed": seed, "repeat": repeat,
                                "draw": draw_name(draw), "coverage": coverage,
-                               **run_variant(scene, frames, masks, variant, cfg, calib, gt_poses)}
+                               **run_variant(scene, frames, masks, variant, cfg, calib, gt_poses,
+                                             camera)}
                         rows.append(row)
                         if on_row is not None:
                             on_row(row)
@@ -405,6 +421,19 @@ def format_comparison(pairs: list[dict], summary: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _parse_lens(text: str) -> Distortion:
+    """``"k1,k2[,p1,p2,k3]"`` -> Distortion; anything else raises ConfigError naming --lens."""
+    from mona_vo.errors import ConfigError
+
+    try:
+        lens = Distortion.from_numbers([float(v) for v in text.split(",")])
+        if lens.check():
+            raise ValueError
+    except ValueError:
+        raise ConfigError(f"--lens expects up to five numbers k1,k2,p1,p2,k3, not '{text}'") from None
+    return lens
+
+
 def parse_seeds(text: str) -> list[int]:
     """``"0-2,5"`` -> ``[0, 1, 2, 5]``; anything else raises ConfigError naming --seeds."""
     from mona_vo.errors import ConfigError
@@ -435,9 +464,13 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="1024x436")
     ap.add_argument("--set", action="append", default=[], help="config override key=value")
     ap.add_argument("--out", metavar="FILE", help="also write the rows and the summary as JSON here")
-    ap.add_argument("--calib", choices=("given", "estimate"), default="given",
-                    help="given: the scenes' true intrinsics; estimate: none, as `mona-vo run` "
-                         "without --calib (default given)")
+    ap.add_argument("--calib", choices=("given", "estimate", "pinhole"), default="given",
+                    help="given: the scenes' true intrinsics (with --lens, its distortion too); "
+                         "estimate: none, as `mona-vo run` without --calib; pinhole: with "
+                         "--lens, the true fx, fy, cx, cy without the distortion (default given)")
+    ap.add_argument("--lens", metavar="K1,K2[,P1,P2,K3]",
+                    help="see every frame through a lens with this distortion (OpenCV's order; "
+                         "mona_vo.lens), the true masks too")
     ap.add_argument("--bars", choices=BAR_KINDS,
                     help="paint bars of this kind over every frame (data_tools.bars), as "
                          "online videos carry them")
@@ -473,6 +506,7 @@ def main(argv=None) -> int:
     cfg = load_config(PipelineConfig, None, parse_set_options(args.set))
     try:
         draws = parse_draws(args.draws, cfg)
+        lens = _parse_lens(args.lens) if args.lens else None
     except MonaVoError as exc:
         print(f"python -m eval.vo_bench: error: {exc}", file=sys.stderr)
         return 1
@@ -480,7 +514,7 @@ def main(argv=None) -> int:
                      n_frames=args.frames, width=w, height=h, config=cfg,
                      on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats),
                      calib=args.calib, bars=args.bars, frame_repeats=args.frame_repeats,
-                     overlay=args.overlay, draws=draws, effects=args.effects == "on")
+                     overlay=args.overlay, draws=draws, effects=args.effects == "on", lens=lens)
     print()
     summary = summarize(rows)
     print(format_summary(summary))

@@ -96,9 +96,11 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     """Everything `run` takes about one input: input, --out, --stride, --max-frames, --calib,
     --masks, --prompt, the config options and --refine (reused by `batch`)."""
     _add_input_options(p)
-    p.add_argument("--calib", metavar="fx,fy,cx,cy|FILE",
-                   help="intrinsics in pixels, or a file (fx fy cx cy, or KITTI calib.txt); "
-                        "default: a guess from the config key assumed_hfov_deg (60 degrees)")
+    p.add_argument("--calib", metavar="fx,fy,cx,cy[,k1,k2,p1,p2,k3]|FILE",
+                   help="intrinsics in pixels, with the lens distortion if the frames have it "
+                        "(OpenCV's order; the frames are then undistorted), or a file (the same "
+                        "numbers on one line, or KITTI calib.txt); default: estimated from the "
+                        "first frames (calibration.mode)")
     _add_mask_options(p)
     _add_config_options(p)
     _add_refine_option(p)
@@ -153,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="Ray CPUs reserved per video (default 1; same as --set batch.cpus_per_video=N)")
     bt.add_argument("--stride", type=int, default=1, help="use every N-th frame (default 1)")
     bt.add_argument("--max-frames", type=int, default=None, help="stop each input after this many frames")
-    bt.add_argument("--calib", metavar="fx,fy,cx,cy|FILE",
+    bt.add_argument("--calib", metavar="fx,fy,cx,cy[,k1,k2,p1,p2,k3]|FILE",
                     help="intrinsics for every input (default: the field-of-view guess, per input)")
     bt.add_argument("--masks", default="mona", metavar="mona|none|DIR",
                     help="moving-object masks: MONA (default), none, or DIR/<input name>/<frame name>.png")
@@ -246,7 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     eu.add_argument("--root", required=True, action="append",
                     help="a folder with rgb.txt, rgb/ and groundtruth.txt (repeatable)")
     eu.add_argument("--variants", default="none,mona", help="comma-separated: none, mona, mona-points, mona-raw-boxes")
-    eu.add_argument("--calib", metavar="fx,fy,cx,cy|FILE|estimate",
+    eu.add_argument("--calib", metavar="fx,fy,cx,cy[,k1,k2,p1,p2,k3]|FILE|estimate",
                     help="intrinsics (default: the folder's calib.txt, else estimated as `run` "
                          "does); estimate: ignore calib.txt and estimate, as for an online video")
     eu.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -609,8 +611,14 @@ def _cmd_eval_tum(args) -> int:
     # what a run is.
     return _evaluate(args, config, seqs, variants,
                      {"dataset": "tum", "max_diff": max_diff,
-                      "calib": "estimate" if estimate else
-                               [calib.fx, calib.fy, calib.cx, calib.cy] if calib else ""})
+                      "calib": "estimate" if estimate else _camera_numbers(calib) if calib else ""})
+
+
+def _camera_numbers(intr) -> list[float]:
+    """fx, fy, cx, cy and, for a distorted lens, its coefficients: what a run's camera is."""
+    numbers = [intr.fx, intr.fy, intr.cx, intr.cy]
+    lens = getattr(intr, "distortion", None)
+    return numbers + [float(v) for v in lens.coeffs] if lens is not None else numbers
 
 
 def _evaluate(args, config, seqs, variants, extra_hash: dict) -> int:

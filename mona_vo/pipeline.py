@@ -26,6 +26,7 @@ from mona_vo.config import check_fields, setting
 from mona_vo.conventions import DEFAULT_HFOV_DEG, Intrinsics
 from mona_vo.tracking import TRACKERS
 from mona_vo.errors import ConfigError, InputError
+from mona_vo.lens import LensIntrinsics, Undistortion, undistort_frames
 from mona_vo.overlays import hide_overlay, overlay_ahead
 from mona_vo.picture_area import PictureArea, crop_frames, crop_to_picture
 from mona_vo.repeats import RepeatDetector
@@ -127,6 +128,8 @@ class RunResult:
                                     # (hide_overlays), None when none was found
     repeat_of: np.ndarray | None = None  # (N,) int: the frame each frame repeats (its pose and
                                     # mask are that frame's), -1 for a distinct frame
+    lens: dict | None = None        # a distorted camera: its coefficients and how far they
+                                    # moved the pixels (mona_vo.lens), else None
 
     @property
     def n_frames(self) -> int:
@@ -158,10 +161,10 @@ class _CallerMasks:
     """Masks given by the caller: an iterable aligned with the frames, or a callable; in
     full-frame pixels, cut to the picture the run uses."""
 
-    def __init__(self, masks, area: PictureArea | None = None):
+    def __init__(self, masks, area: PictureArea | None = None, lens: Undistortion | None = None):
         self.fn = masks if callable(masks) else None
         self.it = None if callable(masks) else iter(masks)
-        self.area = area
+        self.area, self.lens = area, lens
 
     def get(self, frame) -> np.ndarray | None:
         if self.fn is not None:
@@ -178,7 +181,8 @@ class _CallerMasks:
         if m.shape != full.shape[:2]:
             raise InputError(f"mask for frame {frame.name} is {m.shape[1]} x {m.shape[0]}, "
                              f"the frame is {full.shape[1]} x {full.shape[0]}")
-        return m if self.area is None else self.area.crop(m)
+        m = m if self.area is None else self.area.crop(m)
+        return m if self.lens is None else self.lens.mask(m)
 
 
 def estimate_focal_ahead(frames: Iterable, config: "PipelineConfig"):
@@ -286,9 +290,10 @@ class Stream:
     source: Iterable            # the same frames to read again (a second pass)
     rereadable: bool            # whether ``source`` can be read again (not an iterator)
     picture: PictureArea | None  # the picture found (crop_bars; the whole frame without bars)
-    intrinsics: Any             # the caller's intrinsics, in the picture's pixels
+    intrinsics: Any             # the caller's intrinsics, in the picture's pixels (pinhole)
     calibration: Any            # the focal-length estimate without intrinsics, else None
     overlay: np.ndarray | None = None  # the picture's pixels painted over (hide_overlays)
+    lens: Undistortion | None = None   # a distorted camera's frames resampled to its pinhole
 
     @property
     def cut(self) -> PictureArea | None:
@@ -296,6 +301,9 @@ class Stream:
         return self.picture if self.picture is not None and not self.picture.is_whole else None
 
     def full_mask(self, mask):
+        """A mask of the run's picture as one of the frame as given (lens, then bars)."""
+        if self.lens is not None:
+            mask = self.lens.unmask(mask)
         return mask if self.cut is None or mask is None else self.cut.uncrop(mask)
 
 
@@ -305,6 +313,10 @@ def open_stream(frames: Iterable, intrinsics, config: PipelineConfig) -> Stream:
     picture alone, overlays painted over."""
     source = frames
     rereadable = iter(source) is not source
+    distortion = getattr(intrinsics, "distortion", None)
+    if distortion is not None and not isinstance(intrinsics, Intrinsics):
+        raise ConfigError("lens distortion needs one camera for the whole run, not per-frame "
+                          "intrinsics")
     picture = None
     if config.crop_bars:
         # Everything from here on sees the picture alone: masks, focal-length estimate, VO.
@@ -312,6 +324,13 @@ def open_stream(frames: Iterable, intrinsics, config: PipelineConfig) -> Stream:
     if picture is not None and not picture.is_whole:
         source = crop_frames(source, picture)
         intrinsics = _intrinsics_in_picture(intrinsics, picture)
+    lens = None
+    if distortion is not None and not distortion.is_zero:
+        # The distortion lives in normalised coordinates, so it holds for the picture's K too.
+        lens = Undistortion(LensIntrinsics(intrinsics.fx, intrinsics.fy, intrinsics.cx,
+                                           intrinsics.cy, distortion))
+        frames, source = undistort_frames(frames, lens), undistort_frames(source, lens)
+        intrinsics = lens.intr
     overlay = None
     if config.hide_overlays:
         frames, overlay = overlay_ahead(frames)
@@ -322,7 +341,7 @@ def open_stream(frames: Iterable, intrinsics, config: PipelineConfig) -> Stream:
         # Without intrinsics the focal length comes from the first frames (read ahead, then
         # replayed); the VO uses it, the report says how it was found.
         frames, calibration = estimate_focal_ahead(frames, config)
-    return Stream(frames, source, rereadable, picture, intrinsics, calibration, overlay)
+    return Stream(frames, source, rereadable, picture, intrinsics, calibration, overlay, lens)
 
 
 class _Recorder:
@@ -427,7 +446,8 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
         raise ConfigError(f"masks must be 'mona', None, an iterable or a callable, not '{masks}'")
     stream = open_stream(frames, intrinsics, config)
     use_mona = masks == "mona"
-    caller = _CallerMasks(masks, stream.cut) if masks is not None and not use_mona else None
+    caller = _CallerMasks(masks, stream.cut, stream.lens) if masks is not None and not use_mona \
+        else None
     rec = _Recorder(config, stream, on_frame, progress)
     repeats = RepeatDetector(config.repeat_max_diff)
     timings: dict[str, float] = {}
@@ -479,4 +499,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                      cut.to_frame(rec.first_intr) if cut is not None else rec.first_intr, timings,
                      np.array(rec.coverage), stream.calibration, stream.picture,
                      repeat_of=np.array(rec.repeat_of, np.int64),
-                     overlay=stream.full_mask(stream.overlay))
+                     overlay=stream.full_mask(stream.overlay),
+                     lens=None if stream.lens is None else {
+                         "distortion": stream.lens.lens.distortion.as_dict(),
+                         "undistorted_shift_px": stream.lens.shift_px()})

@@ -143,7 +143,10 @@ def build_report(result, *, input_path, source, masks, config, calib_given: bool
                         # frees the focal length over the whole clip, and this is the one used.
                         "focal_used": vo.focal,
                         "focal_refined": "focal_px" in (getattr(vo, "refine", None) or {}),
-                        "focal_estimate": _focal_evidence(result)},
+                        "focal_estimate": _focal_evidence(result),
+                        # A distorted lens (--calib with k1 k2 p1 p2 k3): the frames were
+                        # resampled to the pinhole camera with the same K (mona_vo.lens).
+                        "lens": getattr(result, "lens", None)},
         "seconds": per_stage,
         "frames_per_second": {k: round(v, 2) for k, v in fps.items() if v is not None},
         "dropped": dict(vo.drops),

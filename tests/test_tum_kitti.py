@@ -144,19 +144,21 @@ def test_tum_sequence_without_groundtruth_says_so(tmp_path):
         seq.groundtruth()
 
 
-def test_calib_txt_accepts_a_label_and_ignores_distortion(tmp_path, caplog):
+def test_calib_txt_accepts_a_label_and_reads_the_lens_distortion(tmp_path):
+    from mona_vo.lens import Distortion, LensIntrinsics
+
     path = tmp_path / "calib.txt"
     path.write_text("# fx fy cx cy k1 k2\nK: 500 501 320 240 0.1 -0.2\n")
-    with caplog.at_level("WARNING", logger="data_tools.tum"):
-        assert read_calib_txt(path) == Intrinsics(500.0, 501.0, 320.0, 240.0)
-    # Ignored, but not silently: the user learns the frames carry a distortion left in the tracks.
-    warned = [r.getMessage() for r in caplog.records]
-    assert len(warned) == 1 and str(path) in warned[0] and "0.1 -0.2" in warned[0], warned
-    caplog.clear()
-    path.write_text("500 501 320 240 0 0 0 0 0\n")
-    with caplog.at_level("WARNING", logger="data_tools.tum"):
-        assert read_calib_txt(path) == Intrinsics(500.0, 501.0, 320.0, 240.0)
-    assert not caplog.records      # zero distortion: nothing left out, nothing to say
+    cam = read_calib_txt(path)
+    # The distortion after fx fy cx cy is the lens's (OpenCV's order), kept for the run to
+    # undistort the frames with, not dropped (it once was, silently).
+    assert cam == LensIntrinsics(500.0, 501.0, 320.0, 240.0, Distortion(0.1, -0.2))
+    assert cam.pinhole() == Intrinsics(500.0, 501.0, 320.0, 240.0)
+    path.write_text("500 501 320 240 0 0 0 0 0\n")      # TUM's d0-d4, all zero: a pinhole
+    assert read_calib_txt(path) == Intrinsics(500.0, 501.0, 320.0, 240.0)
+    path.write_text("500 501 320 240 0.1 0 0 0 0 7\n")
+    with pytest.raises(InputError, match=":1: expected 'fx fy cx cy' and at most 5 distortion"):
+        read_calib_txt(path)
     path.write_text("500 -1 320 240\n")
     with pytest.raises(InputError, match=":1: focal length must be positive"):
         read_calib_txt(path)
