@@ -470,7 +470,8 @@ def main(argv=None) -> int:
                          "--lens, the true fx, fy, cx, cy without the distortion (default given)")
     ap.add_argument("--lens", metavar="K1,K2[,P1,P2,K3]",
                     help="see every frame through a lens with this distortion (OpenCV's order; "
-                         "mona_vo.lens), the true masks too")
+                         "mona_vo.lens), the true masks too; write --lens=K1,... when k1 is "
+                         "negative")
     ap.add_argument("--bars", choices=BAR_KINDS,
                     help="paint bars of this kind over every frame (data_tools.bars), as "
                          "online videos carry them")
