@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from mona_vo.conventions import Intrinsics
+from mona_vo.picture_area import PictureFrame
 
 COEFFICIENTS = ("k1", "k2", "p1", "p2", "k3")
 
@@ -88,7 +89,8 @@ class Undistortion:
         self.lens, self.intr = lens, lens.pinhole()
         self._size = None
 
-    def _maps(self, width: int, height: int):
+    def maps(self, width: int, height: int):
+        """(pinhole -> frame x, y; frame -> pinhole x, y) float32 maps for cv2.remap at this size."""
         if self._size != (width, height):
             K, D = self.intr.K, self.lens.distortion.coeffs
             # pinhole pixel -> distorted pixel: what each undistorted pixel samples
@@ -108,13 +110,13 @@ class Undistortion:
         """A frame as given -> the pinhole camera's picture (bilinear; edge pixels repeated where
         the lens saw nothing)."""
         h, w = image.shape[:2]
-        fx, fy, _, _ = self._maps(w, h)
+        fx, fy, _, _ = self.maps(w, h)
         return cv2.remap(image, fx, fy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def mask(self, mask: np.ndarray) -> np.ndarray:
         """A bool mask on a frame as given -> on the pinhole picture (nearest)."""
         h, w = mask.shape
-        fx, fy, _, _ = self._maps(w, h)
+        fx, fy, _, _ = self.maps(w, h)
         out = cv2.remap(mask.astype(np.uint8), fx, fy, cv2.INTER_NEAREST,
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return out.astype(bool)
@@ -124,7 +126,7 @@ class Undistortion:
         if mask is None:
             return None
         h, w = mask.shape
-        _, _, bx, by = self._maps(w, h)
+        _, _, bx, by = self.maps(w, h)
         out = cv2.remap(mask.astype(np.uint8), bx, by, cv2.INTER_NEAREST,
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return out.astype(bool)
@@ -133,7 +135,7 @@ class Undistortion:
         """The inverse of :meth:`image`: a pinhole picture as this lens would have given it (for
         benchmarks and tests that render pinhole frames)."""
         h, w = image.shape[:2]
-        _, _, bx, by = self._maps(w, h)
+        _, _, bx, by = self.maps(w, h)
         return cv2.remap(image, bx, by, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def shift_px(self) -> dict | None:
@@ -147,19 +149,9 @@ class Undistortion:
                 "p90": round(float(np.percentile(d, 90)), 3), "max": round(float(d.max()), 3)}
 
 
-class UndistortedFrame:
-    """A frame on the pinhole camera; ``full`` keeps the frame as given (what outputs line up
-    with)."""
-
-    __slots__ = ("index", "timestamp", "name", "image", "full")
-
-    def __init__(self, index, timestamp, name, image, full):
-        self.index, self.timestamp, self.name, self.image, self.full = \
-            index, timestamp, name, image, full
-
-
 class undistort_frames:
-    """``frames`` (objects with index, timestamp, name, image) on the pinhole camera.
+    """``frames`` (objects with index, timestamp, name, image) on the pinhole camera, as
+    :class:`PictureFrame` (``full``: the frame as given, what outputs line up with).
     Re-iterable when ``frames`` is, so a second VO pass reads the same pictures."""
 
     def __init__(self, frames, undistortion: Undistortion):
@@ -167,5 +159,5 @@ class undistort_frames:
 
     def __iter__(self):
         for f in self.frames:
-            yield UndistortedFrame(f.index, f.timestamp, f.name, self.undistortion.image(f.image),
-                                   getattr(f, "full", f.image))
+            yield PictureFrame(f.index, f.timestamp, f.name, self.undistortion.image(f.image),
+                               getattr(f, "full", f.image))
