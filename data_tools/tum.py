@@ -151,16 +151,12 @@ def read_calib_txt(path: str | os.PathLike) -> Intrinsics:
             fields = fields[1:]  # a label
         if len(fields) < 4 or not all(_is_number(f) for f in fields[:4]):
             raise InputError(f"{path}:{lineno}: expected 'fx fy cx cy', got {text[:60]!r}")
-        intr = Intrinsics(*(float(f) for f in fields[:4]))
-        problems = intr.check()
-        if problems:
-            raise InputError(f"{path}:{lineno}: {problems[0]}")
         rest = fields[4:]
         if len(rest) > len(COEFFICIENTS) or not all(_is_number(f) for f in rest):
             raise InputError(f"{path}:{lineno}: expected 'fx fy cx cy' and at most "
                              f"{len(COEFFICIENTS)} distortion coefficients "
                              f"({' '.join(COEFFICIENTS)}), got {text[:60]!r}")
-        cam = camera(intr, Distortion.from_numbers(rest))
+        cam = camera(Intrinsics(*(float(f) for f in fields[:4])), Distortion.from_numbers(rest))
         problems = cam.check()
         if problems:
             raise InputError(f"{path}:{lineno}: {problems[0]}")

@@ -19,7 +19,7 @@ where a bar was found (video coding rings next to the bar's edge). Bars that are
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Iterable, Iterator
 
 import cv2
@@ -68,16 +68,17 @@ class PictureArea:
         return out
 
     def to_picture(self, intr: Intrinsics | None) -> Intrinsics | None:
-        """Full-frame intrinsics -> the picture's (the principal point moves with the crop)."""
+        """Full-frame intrinsics -> the picture's (the principal point moves with the crop; a
+        lens's distortion, in normalised coordinates, stays as it is)."""
         if intr is None or self.is_whole:
             return intr
-        return Intrinsics(intr.fx, intr.fy, intr.cx - self.x0, intr.cy - self.y0)
+        return replace(intr, cx=intr.cx - self.x0, cy=intr.cy - self.y0)
 
     def to_frame(self, intr: Intrinsics | None) -> Intrinsics | None:
         """The picture's intrinsics -> the full frame's."""
         if intr is None or self.is_whole:
             return intr
-        return Intrinsics(intr.fx, intr.fy, intr.cx + self.x0, intr.cy + self.y0)
+        return replace(intr, cx=intr.cx + self.x0, cy=intr.cy + self.y0)
 
     def as_dict(self) -> dict:
         return {"x0": self.x0, "y0": self.y0, "x1": self.x1, "y1": self.y1,

@@ -313,10 +313,6 @@ def open_stream(frames: Iterable, intrinsics, config: PipelineConfig) -> Stream:
     picture alone, overlays painted over."""
     source = frames
     rereadable = iter(source) is not source
-    distortion = getattr(intrinsics, "distortion", None)
-    if distortion is not None and not isinstance(intrinsics, Intrinsics):
-        raise ConfigError("lens distortion needs one camera for the whole run, not per-frame "
-                          "intrinsics")
     picture = None
     if config.crop_bars:
         # Everything from here on sees the picture alone: masks, focal-length estimate, VO.
@@ -325,10 +321,9 @@ def open_stream(frames: Iterable, intrinsics, config: PipelineConfig) -> Stream:
         source = crop_frames(source, picture)
         intrinsics = _intrinsics_in_picture(intrinsics, picture)
     lens = None
-    if distortion is not None and not distortion.is_zero:
-        # The distortion lives in normalised coordinates, so it holds for the picture's K too.
-        lens = Undistortion(LensIntrinsics(intrinsics.fx, intrinsics.fy, intrinsics.cx,
-                                           intrinsics.cy, distortion))
+    if isinstance(intrinsics, LensIntrinsics) and not intrinsics.distortion.is_zero:
+        # From here on the camera is a pinhole: the frames are resampled to it once.
+        lens = Undistortion(intrinsics)
         frames, source = undistort_frames(frames, lens), undistort_frames(source, lens)
         intrinsics = lens.intr
     overlay = None

@@ -144,3 +144,14 @@ def test_the_vo_bench_refuses_a_bad_lens_in_one_line(capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert err == [f"python -m eval.vo_bench: error: --lens expects up to five numbers "
                        f"k1,k2,p1,p2,k3, not '{bad}'"], err
+
+
+def test_cutting_bars_keeps_the_lens():
+    """The bars are cut before the frames are undistorted: the picture's camera moves its
+    principal point and keeps the distortion (normalised coordinates do not move)."""
+    from mona_vo.picture_area import PictureArea
+
+    area = PictureArea(10, 20, 300, 120, 320, 136)
+    pic = area.to_picture(LENS)
+    assert pic == LensIntrinsics(300.0, 300.0, 151.0, 48.0, LENS.distortion)
+    assert area.to_frame(pic) == LENS
