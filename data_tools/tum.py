@@ -152,11 +152,15 @@ def read_calib_txt(path: str | os.PathLike) -> Intrinsics:
         if len(fields) < 4 or not all(_is_number(f) for f in fields[:4]):
             raise InputError(f"{path}:{lineno}: expected 'fx fy cx cy', got {text[:60]!r}")
         rest = fields[4:]
-        if len(rest) > len(COEFFICIENTS) or not all(_is_number(f) for f in rest):
+        try:   # Distortion.from_numbers refuses more coefficients than the model has
+            if not all(_is_number(f) for f in rest):
+                raise ValueError
+            lens = Distortion.from_numbers(rest)
+        except ValueError:
             raise InputError(f"{path}:{lineno}: expected 'fx fy cx cy' and at most "
                              f"{len(COEFFICIENTS)} distortion coefficients "
-                             f"({' '.join(COEFFICIENTS)}), got {text[:60]!r}")
-        cam = camera(Intrinsics(*(float(f) for f in fields[:4])), Distortion.from_numbers(rest))
+                             f"({' '.join(COEFFICIENTS)}), got {text[:60]!r}") from None
+        cam = camera(Intrinsics(*(float(f) for f in fields[:4])), lens)
         problems = cam.check()
         if problems:
             raise InputError(f"{path}:{lineno}: {problems[0]}")

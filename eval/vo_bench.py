@@ -34,7 +34,7 @@ from eval.metrics import RotationMetrics, Trajectory, score_trajectory
 from mona_vo.batch import clip_verdict
 from mona_vo.config import apply_overrides
 from mona_vo.errors import EvalError, MonaVoError
-from mona_vo.lens import Distortion, LensIntrinsics, Undistortion
+from mona_vo.lens import Distortion, LensIntrinsics, Undistortion, camera as lens_camera
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 from mona_vo.run import clip_summary
 
@@ -161,10 +161,8 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
     for preset in presets:
         for seed in seeds:
             scene, frames, masks = render_sequence(preset, seed, n_frames, width, height, effects)
-            camera = None
-            if lens is not None and not lens.is_zero:
-                k = scene.intrinsics
-                camera = LensIntrinsics(k.fx, k.fy, k.cx, k.cy, lens)
+            camera = None if lens is None else lens_camera(scene.intrinsics, lens)
+            if isinstance(camera, LensIntrinsics):
                 und = Undistortion(camera)
                 frames = [Frame(f.index, f.timestamp, f.name, und.distort(f.image)) for f in frames]
                 masks = [und.unmask(m) for m in masks]
