@@ -1,16 +1,21 @@
 """Named speed/accuracy presets: config overrides applied before --config and --set.
 
 Measured (README, Results, "Point density and the presets"): ``accurate`` is the denser point
-grid alone, chosen on the generator's tuning seeds and checked on its held-out seeds, Bonn and
-the speed scenes; ``fast`` is older and its figures are in the same section."""
+grid of the map (the start keeps its own), chosen on the generator's tuning seeds and checked on
+its held-out seeds, Bonn and the speed scenes; ``fast`` is older and its figures are in the same
+section."""
 
 PRESETS: dict[str, dict[str, object]] = {
     "default": {},
     # Fewer tracks and a shorter window: the VO 1.4x (fast turns) to 2x as fast, about 1.3x the
     # error on generated scenes.
-    "fast": {"vo.grid_size": 12, "vo.window_keyframes": 6, "vo.ba.max_iterations": 5},
-    # 24 x 24 new points instead of 16 x 16: on generated static scenes and creeps about a
-    # quarter lower ATE, the VO about half as fast. Not the default: with more far points the
-    # start's median parallax rises more slowly, and the Bonn clip without masks builds no map.
+    "fast": {"vo.grid_size": 12, "vo.init_grid_size": 12, "vo.window_keyframes": 6,
+             "vo.ba.max_iterations": 5},
+    # 24 x 24 new points per keyframe once a map exists instead of 16 x 16 (the start keeps
+    # vo.init_grid_size's 16: with more far points its median parallax rises more slowly, and
+    # at 24 the Bonn clip without masks built no map). Generated scenes: ATE 5-25 % lower with
+    # true masks, no masks and MONA masks, every part; the VO about half as fast on fast turns.
+    # Not the default: on Bonn's long part the run without masks gains much more than MONA's
+    # (README, Point density and the presets).
     "accurate": {"vo.grid_size": 24},
 }

@@ -81,6 +81,9 @@ class VOConfig:
     # The point tracker (its back end, device and checkpoint) is PipelineConfig's `tracker`,
     # shared with the masks; the VO is handed a Tracker instance.
     grid_size: int = setting(16, ge=2)      # k: new points on a k x k grid, one per cell
+    init_grid_size: int = setting(16, ge=2)  # ... and this k while no map exists (the start, and
+                                            # again after tracking is lost): the start needs
+                                            # a median parallax, which far points hold down
     point_score: str = setting("min_eigen", choices=("min_eigen", "gradient"))
                                             # min_eigen (Shi-Tomasi) | gradient (LEAP-VO)
     point_quality: float = setting(0.1, ge=0, le=1)  # in a weakly textured frame a new point
@@ -506,7 +509,9 @@ class VisualOdometry:
             k = 2 * self.cfg.mask_dilate_px + 1
             exclude = cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
             exclude = exclude if self._occluded is None else exclude | self._occluded
-        pts = seed_points(gray, self.cfg.grid_size, self.cfg.point_score, self.cfg.point_min_score,
+        k_grid = (self.cfg.init_grid_size if self.map.state is VOState.INIT
+                  else self.cfg.grid_size)
+        pts = seed_points(gray, k_grid, self.cfg.point_score, self.cfg.point_min_score,
                           self.cfg.point_quality, exclude=exclude, occupied=self._static(obs).uv)
         new_ids = self.tracker.add_points(pts) if len(pts) else np.zeros(0, np.int64)
         return np.asarray(new_ids, np.int64), pts.astype(np.float64)
