@@ -1,6 +1,6 @@
 """Two-view initialisation on a real pair against ground truth (``mona-vo eval two-view``).
 
-The VO's own steps, nothing else: points on the VO's start grid, ``init_grid_size`` squared (best
+The VO's own steps, nothing else: points on the VO's start grid, ``start_grid`` squared (best
 texture per cell, :func:`mona_vo.point_selection.grid_points` with the VO's score), tracked from
 image0 to image1 by the VO's default tracker (``lk``, :class:`mona_vo.tracking.LKTracker`, its
 forward-backward check dropping lost tracks), then :func:`mona_vo.two_view.relative_pose`
@@ -63,7 +63,7 @@ def track_grid(image0: np.ndarray, image1: np.ndarray, *, grid_size: int | None 
     """Grid points of image0 tracked into image1 with the VO's tracker.
 
     image0, image1: (H, W, 3) uint8 RGB (or (H, W) grey). grid_size defaults to
-    :class:`mona_vo.vo.VOConfig`'s start grid (``init_grid_size``), point_score to its own.
+    :class:`mona_vo.vo.VOConfig`'s start grid (``start_grid``), point_score to its own.
     Returns (N, 2) float64 pixels x, y in image0, the same
     points in image1, and the number of points started.
     """
@@ -73,7 +73,7 @@ def track_grid(image0: np.ndarray, image1: np.ndarray, *, grid_size: int | None 
     from mona_vo.vo import VOConfig
 
     cfg = VOConfig()
-    k = grid_size or cfg.init_grid_size
+    k = grid_size or cfg.start_grid
     score = texture_score(to_gray(image0), point_score or cfg.point_score)
     pts = grid_points(score, k, k)
     tracker = PipelineConfig().build_tracker()

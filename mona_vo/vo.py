@@ -81,9 +81,10 @@ class VOConfig:
     # The point tracker (its back end, device and checkpoint) is PipelineConfig's `tracker`,
     # shared with the masks; the VO is handed a Tracker instance.
     grid_size: int = setting(16, ge=2)      # k: new points on a k x k grid, one per cell
-    init_grid_size: int = setting(16, ge=2)  # ... and this k while no map exists (the start, and
-                                            # again after tracking is lost): the start needs
-                                            # a median parallax, which far points hold down
+    init_grid_size: int = setting(0, ge=0)  # ... and this k while no map exists (the start, and
+                                            # again after tracking is lost; 0: grid_size). The
+                                            # start needs a median parallax, which many far
+                                            # points hold down (--preset accurate: 16, map 24)
     point_score: str = setting("min_eigen", choices=("min_eigen", "gradient"))
                                             # min_eigen (Shi-Tomasi) | gradient (LEAP-VO)
     point_quality: float = setting(0.1, ge=0, le=1)  # in a weakly textured frame a new point
@@ -207,8 +208,16 @@ class VOConfig:
                                             # point)
     ba: BAConfig = field(default_factory=BAConfig)  # bundle adjustment (window and global)
 
+    @property
+    def start_grid(self) -> int:
+        """k of the k x k grid new points are seeded on while no map exists."""
+        return self.init_grid_size or self.grid_size
+
     def validate(self) -> None:
         check_fields(self, "vo.")
+        if self.init_grid_size == 1:
+            raise ConfigError("config key 'vo.init_grid_size': expected 0 (the map's grid_size) "
+                              "or an integer >= 2, got 1")
         if self.window_keyframes <= self.fixed_keyframes:
             raise ConfigError(f"config keys 'vo.window_keyframes' ({self.window_keyframes}) and "
                               f"'vo.fixed_keyframes' ({self.fixed_keyframes}): the window must "
@@ -509,8 +518,7 @@ class VisualOdometry:
             k = 2 * self.cfg.mask_dilate_px + 1
             exclude = cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
             exclude = exclude if self._occluded is None else exclude | self._occluded
-        k_grid = (self.cfg.init_grid_size if self.map.state is VOState.INIT
-                  else self.cfg.grid_size)
+        k_grid = self.cfg.start_grid if self.map.state is VOState.INIT else self.cfg.grid_size
         pts = seed_points(gray, k_grid, self.cfg.point_score, self.cfg.point_min_score,
                           self.cfg.point_quality, exclude=exclude, occupied=self._static(obs).uv)
         new_ids = self.tracker.add_points(pts) if len(pts) else np.zeros(0, np.int64)

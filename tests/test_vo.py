@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from data_tools.synthetic import SceneConfig, SyntheticScene
 from mona_vo.conventions import Intrinsics
+from mona_vo.errors import ConfigError
 from mona_vo.vo import VOConfig, VisualOdometry
 from mona_vo.vo_map import LandmarkFlag
 
@@ -707,3 +708,7 @@ def test_the_start_seeds_its_own_grid_and_the_map_the_denser_one(monkeypatch):
     first_map = states.index(VOState.TRACKING)
     assert res.drops["tracking_lost"] >= 1
     assert VOState.INIT in states[first_map:]
+    # 0, the default, is the map's grid: every command that draws vo.grid_size keeps its runs.
+    assert VOConfig(grid_size=14).start_grid == 14 and VOConfig().init_grid_size == 0
+    with pytest.raises(ConfigError, match="'vo.init_grid_size'"):
+        VOConfig(init_grid_size=1).validate()
