@@ -36,6 +36,7 @@ from mona_vo.config import apply_overrides
 from mona_vo.errors import EvalError, MonaVoError
 from mona_vo.lens import Distortion, LensIntrinsics, Undistortion, camera as lens_camera
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
+from mona_vo.presets import PRESETS
 from mona_vo.run import clip_summary
 
 
@@ -460,6 +461,9 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default="none,gt,mona")
     ap.add_argument("--frames", type=int, default=50)
     ap.add_argument("--size", default="1024x436")
+    ap.add_argument("--preset", choices=sorted(PRESETS), default="default",
+                    help="the speed/accuracy preset of `mona-vo --preset` (mona_vo/presets.py), "
+                         "applied before --set; --presets names the generated scenes")
     ap.add_argument("--set", action="append", default=[], help="config override key=value")
     ap.add_argument("--out", metavar="FILE", help="also write the rows and the summary as JSON here")
     ap.add_argument("--calib", choices=("given", "estimate", "pinhole"), default="given",
@@ -502,8 +506,9 @@ def main(argv=None) -> int:
     from mona_vo.config import load_config, parse_set_options
 
     w, h = (int(v) for v in args.size.split("x"))
-    cfg = load_config(PipelineConfig, None, parse_set_options(args.set))
     try:
+        cfg = load_config(apply_overrides(PipelineConfig(), PRESETS[args.preset]), None,
+                          parse_set_options(args.set))
         draws = parse_draws(args.draws, cfg)
         lens = _parse_lens(args.lens) if args.lens else None
     except MonaVoError as exc:

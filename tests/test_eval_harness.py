@@ -364,6 +364,36 @@ def test_vo_bench_draws_read_a_variant_against_no_masks_over_each_sequences_draw
     assert len(err) == 2 and all("--draws" in e or "no_such_key" in e for e in err), err
 
 
+def test_vo_bench_runs_a_speed_preset_as_mona_vo_does_and_a_bad_set_is_one_line(monkeypatch, capsys):
+    """`python -m eval.vo_bench --preset NAME`: the benchmark gets the configuration
+    `mona-vo --preset NAME` builds (the preset, then --set), so a preset's figures need no copy
+    of its keys; an unknown --set key is a one-line error and exit 1, not a traceback."""
+    import eval.vo_bench as vb
+    from mona_vo.config import apply_overrides
+    from mona_vo.pipeline import PipelineConfig
+    from mona_vo.presets import PRESETS
+
+    class Seen(Exception):
+        pass
+
+    def fake_benchmark(*args, config, **kwargs):
+        raise Seen(config)
+
+    monkeypatch.setattr(vb, "benchmark", fake_benchmark)
+    with pytest.raises(Seen) as got:
+        vb.main(["--preset", "accurate", "--set", "vo.window_keyframes=9", "--presets", "static"])
+    cfg = got.value.args[0]
+    want = apply_overrides(apply_overrides(PipelineConfig(), PRESETS["accurate"]),
+                           {"vo.window_keyframes": "9"})
+    assert cfg == want and cfg.vo.grid_size == 24 and cfg.vo.start_grid == 16
+    with pytest.raises(Seen) as got:
+        vb.main(["--presets", "static"])
+    assert got.value.args[0] == PipelineConfig()
+    assert vb.main(["--presets", "static", "--set", "vo.grid_sise=3"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "vo.grid_sise" in err[0], err
+
+
 def test_draws_md_lists_only_the_parts_a_sequence_scored(tmp_path):
     """A part beyond a short sequence (Bonn's 53-frame clip beside its 450-frame part) scores
     nothing there and is no row of draws.md's part table."""
