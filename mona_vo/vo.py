@@ -82,9 +82,10 @@ class VOConfig:
     # shared with the masks; the VO is handed a Tracker instance.
     grid_size: int = setting(16, ge=2)      # k: new points on a k x k grid, one per cell
     init_grid_size: int = setting(0, ge=0)  # ... and this k while no map exists (the start, and
-                                            # again after tracking is lost; 0: grid_size). The
-                                            # start needs a median parallax, which many far
-                                            # points hold down (--preset accurate: 16, map 24)
+                                            # again after tracking is lost): 0 (grid_size) or
+                                            # at least 2. The start needs a median parallax,
+                                            # which many far points hold down (--preset
+                                            # accurate: 16, map 24)
     point_score: str = setting("min_eigen", choices=("min_eigen", "gradient"))
                                             # min_eigen (Shi-Tomasi) | gradient (LEAP-VO)
     point_quality: float = setting(0.1, ge=0, le=1)  # in a weakly textured frame a new point
