@@ -12,8 +12,9 @@ PRESETS: dict[str, dict[str, object]] = {
     "fast": {"vo.grid_size": 12, "vo.window_keyframes": 6, "vo.ba.max_iterations": 5},
     # 24 x 24 new points per keyframe once a map exists instead of 16 x 16; the start keeps
     # 16 (with more far points its median parallax rises more slowly, and with 24 there too
-    # the Bonn clip without masks built no map). Generated scenes: ATE 5-25 % lower with
-    # true masks, no masks and MONA masks, every part; the VO about half as fast on fast turns.
+    # the Bonn clip without masks built no map). Generated `mixed` scenes: ATE 1-26 % lower
+    # with true masks, no masks and MONA masks on every part (geometric means); static 7-29 %
+    # lower; the VO about half as fast on fast turns.
     # Not the default: on Bonn's long part the run without masks gains much more than MONA's
     # (README, Point density and the presets).
     "accurate": {"vo.grid_size": 24, "vo.init_grid_size": 16},
