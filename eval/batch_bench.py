@@ -111,9 +111,7 @@ def format_result(r: dict) -> str:
 
 def main(argv=None) -> int:
     from mona_vo.batch import RunOptions
-    from mona_vo.config import load_config
-    from mona_vo.pipeline import PipelineConfig
-    from mona_vo.presets import PRESETS
+    from mona_vo.presets import PRESETS, preset_config
 
     p = argparse.ArgumentParser(prog="python -m eval.batch_bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -123,7 +121,7 @@ def main(argv=None) -> int:
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--preset", default="default", choices=sorted(PRESETS))
     args = p.parse_args(argv)
-    options = RunOptions(config=load_config(PipelineConfig, None, dict(PRESETS[args.preset])),
+    options = RunOptions(config=preset_config(args.preset),
                          max_frames=args.max_frames)
     r = bench_batch(args.inputs, args.out, options=options,
                     concurrency=tuple(int(c) for c in args.concurrency.split(",")))

@@ -36,7 +36,7 @@ from mona_vo.config import apply_overrides
 from mona_vo.errors import EvalError, MonaVoError
 from mona_vo.lens import Distortion, LensIntrinsics, Undistortion, camera as lens_camera
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
-from mona_vo.presets import PRESETS
+from mona_vo.presets import PRESETS, preset_config
 from mona_vo.run import clip_summary
 
 
@@ -503,12 +503,11 @@ def main(argv=None) -> int:
             return 1
         print(format_comparison(*compare_runs(*rows)))
         return 0
-    from mona_vo.config import load_config, parse_set_options
+    from mona_vo.config import parse_set_options
 
     w, h = (int(v) for v in args.size.split("x"))
     try:
-        cfg = load_config(apply_overrides(PipelineConfig(), PRESETS[args.preset]), None,
-                          parse_set_options(args.set))
+        cfg = preset_config(args.preset, None, parse_set_options(args.set))
         draws = parse_draws(args.draws, cfg)
         lens = _parse_lens(args.lens) if args.lens else None
     except MonaVoError as exc:

@@ -318,18 +318,17 @@ def _pipeline_config(args, *, speed_preset: bool = True):
     """The run's PipelineConfig: defaults, then --preset, then --config, then the options that
     name one key (--prompt, --device, --weights, --refine), then --set. Checked once, at the end.
     ``speed_preset`` False: the command's --preset is something else (demo's scene)."""
-    from mona_vo.config import apply_overrides, load_config, parse_set_options
-    from mona_vo.pipeline import PipelineConfig
+    from mona_vo.config import parse_set_options
+    from mona_vo.presets import preset_config
 
     preset = (getattr(args, "preset", None) if speed_preset else None) or "default"
-    base = apply_overrides(PipelineConfig(), PRESETS[preset])
     overrides = {}
     for option, key in (("prompt", "masks.prompt"), ("device", "device"), ("weights", "weights"),
                         ("refine", "vo.refine")):
         if getattr(args, option, None) is not None:
             overrides[key] = getattr(args, option)
     overrides.update(parse_set_options(getattr(args, "set", None)))
-    return load_config(base, getattr(args, "config", None), overrides)
+    return preset_config(preset, getattr(args, "config", None), overrides)
 
 
 def _cmd_run(args) -> int:

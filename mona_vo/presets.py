@@ -19,3 +19,13 @@ PRESETS: dict[str, dict[str, object]] = {
     # (README, Point density and the presets).
     "accurate": {"vo.grid_size": 24, "vo.init_grid_size": 16},
 }
+
+
+def preset_config(name: str, yaml_path=None, overrides: dict | None = None):
+    """The configuration of preset ``name``: defaults, the preset, then the YAML file, then
+    ``overrides`` (``--set``), checked once (:func:`mona_vo.config.load_config`). Every command
+    that takes ``--preset`` builds its configuration here, so a preset means one thing."""
+    from mona_vo.config import apply_overrides, load_config
+    from mona_vo.pipeline import PipelineConfig
+
+    return load_config(apply_overrides(PipelineConfig(), PRESETS[name]), yaml_path, overrides)
