@@ -23,6 +23,11 @@ from mona_vo.batch import (BatchConfig, RunOptions, VerdictConfig, batch_config_
                            clip_verdict, config_hash, expand_inputs, input_names)
 from mona_vo.errors import ConfigError, InputError
 
+# The suite runs on two pytest-xdist workers (README); every test here shares one local Ray
+# cluster (the module fixture below), so `--dist loadgroup` keeps them on one worker: one cluster
+# per run, not one per worker competing for the same two cores.
+pytestmark = pytest.mark.xdist_group("ray")
+
 CHROMIUM = Path("/usr/bin/chromium")
 N_LONG = 24       # frames of the clip whose worker is killed
 N_SHORT = 12      # frames of the other clips
