@@ -68,6 +68,10 @@ class FocalConfig:
                                             # focal length by more than this share, the VO runs
                                             # again over the frames with the refined camera
                                             # (frames that can be read twice only)
+    start_again: bool = setting(True)  # a run that built no map while its parallax says the
+                                            # camera translated runs again with the start's
+                                            # ray-angle test taken at hfov_max_deg (frames that
+                                            # can be read twice only; pipeline._start_again)
     held_iterations: int = setting(5, ge=1)   # LM iterations of a held-focal solve (evidence)
     freed_iterations: int = setting(30, ge=1)  # LM iterations of a freed-focal solve
 

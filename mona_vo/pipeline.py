@@ -218,19 +218,80 @@ def camera_ahead(frames: Iterable, config: "PipelineConfig", width: int, height:
     return frames, estimate, camera_without_calib(estimate, config, width, height)
 
 
-def _second_pass(source: Iterable, first: VOResult, vo_masks: list, size, start: Intrinsics,
+def _vo_again(source: Iterable, vo_masks: list, size, camera: Intrinsics, vo_config: VOConfig,
+              config: PipelineConfig, timings: dict, occluded: np.ndarray | None):
+    """The VO once more over ``source`` (the distinct frames again) with the masks the first pass
+    saw, from ``camera`` (not known: the global refinement frees its focal length). Returns
+    (the result, None), or (None, why) when the frames cannot be read again or do not come back
+    the same: the first pass is a complete result and must not be lost to them."""
+    vo = VisualOdometry(vo_config, size[0], size[1], camera, tracker=config.build_tracker(),
+                        camera_known=False, occluded=occluded)
+    n = 0
+    try:
+        for frame, packed in zip(source, vo_masks):
+            mask = None if packed is None else \
+                np.unpackbits(packed, count=size[0] * size[1]).reshape(size[1], size[0]).astype(bool)
+            vo.step(frame.image, timestamp=frame.timestamp, mask=mask)
+            n += 1
+    except InputError as exc:
+        return None, f"reading the frames again failed ({exc})"
+    if n != len(vo_masks):
+        return None, f"the frames came back {n} instead of {len(vo_masks)}"
+    result = vo.finish()
+    for stage, sec in result.timings.items():
+        timings[f"vo.{stage}"] = timings.get(f"vo.{stage}", 0.0) + sec
+    return result, None
+
+
+def _start_again(source: Iterable, first: VOResult, vo_masks: list, size, start: Intrinsics,
                  config: PipelineConfig, timings: dict, occluded: np.ndarray | None = None
-                 ) -> VOResult:
+                 ) -> tuple[VOResult, VOConfig]:
+    """When the VO built no map while its parallax evidence says the camera translated (a slow
+    creep), the VO again with the start's ray-angle test (``vo.init_min_parallax_deg``) taken as
+    it would be at the widest field of view the focal estimate considers
+    (``calibration.hfov_max_deg``). Without intrinsics that angle is measured with a focal length
+    nobody confirmed (the guess, when the first frames moved too little to estimate it), and one
+    too long makes every angle too small: generated creep 302 (true field of view 73 deg) built
+    a map given its camera and none on the 60-degree guess, from the same frames. The start's
+    other tests (inliers, the rotation-free parallax in pixels) are as before. Returns the result
+    to keep (the first when the new one builds no map either) and the VO settings it ran with;
+    ``refine['start_again']`` says what happened."""
+    parallax = first.parallax or {}
+    if not config.calibration.start_again or parallax.get("map_built", True) \
+            or parallax.get("conclusion") != "translation":
+        return first, config.vo
+    wide = Intrinsics.default_for(size[0], size[1], config.calibration.hfov_max_deg).fx
+    if wide >= start.fx:
+        return first, config.vo
+    angle = config.vo.init_min_parallax_deg * wide / start.fx
+    vo_config = dataclasses.replace(config.vo, init_min_parallax_deg=angle)
+    why = (f"no map was built while the parallax said the camera translated (ratio "
+           f"{parallax.get('ratio')}); the start's ray-angle test was taken at a "
+           f"{config.calibration.hfov_max_deg:g}-degree field of view: "
+           f"{config.vo.init_min_parallax_deg:g} -> {angle:.3f} deg")
+    result, failed = _vo_again(source, vo_masks, size, start, vo_config, config, timings, occluded)
+    if result is None or not (result.parallax or {}).get("map_built", False):
+        first.refine = {**(first.refine or {}), "start_again": (
+            f"no: {failed}" if failed else f"tried, no map either: {why}")}
+        return first, config.vo
+    result.refine = {**(result.refine or {}), "start_again": f"yes: {why}"}
+    return result, vo_config
+
+
+def _second_pass(source: Iterable, first: VOResult, vo_masks: list, size, start: Intrinsics,
+                 config: PipelineConfig, timings: dict, occluded: np.ndarray | None = None,
+                 vo_config: VOConfig | None = None) -> VOResult:
     """The VO again over ``source``, starting from the camera the first pass's global
-    refinement found (and refining it again at its end). The first pass built its map on the
+    refinement found (and refining it again at its end), with ``vo_config`` (default
+    ``config.vo``). The first pass built its map on the
     first-frames estimate, and a map built on a focal length 27 % short keeps part of that
     error after the focal length is corrected: Bonn crowd frames 0-449 without calibration,
     10.6 cm ATE after one pass, 3.8 cm after two (3.99 cm with the refined focal length held,
     6.0 cm with the true calibration, one draw each). Holding the refined focal length in the
     second pass was worse on a generated creep (refined +6.8 %: 0.20 % of path against 0.12 %
     when it is refined again). Returns ``first`` unchanged when the focal length moved less
-    than ``calibration.second_pass_change`` or the frames do not come back the same; its
-    ``refine`` then says why."""
+    than ``calibration.second_pass_change``, the frames do not come back the same, or the
+    second pass builds no map where the first did; its ``refine`` then says why."""
     refine = dict(first.refine or {})
     f0, f1 = refine.get("focal_start_px"), refine.get("focal_px")
     if f0 is None or f1 is None:
@@ -242,31 +303,22 @@ def _second_pass(source: Iterable, first: VOResult, vo_masks: list, size, start:
         first.refine = refine
         return first
     cx, cy = refine.get("centre_px", (start.cx, start.cy))
-    camera = Intrinsics(f1, f1, cx, cy)
-    vo = VisualOdometry(config.vo, size[0], size[1], camera, tracker=config.build_tracker(),
-                        camera_known=False, occluded=occluded)
-    n = 0
-    try:
-        for frame, packed in zip(source, vo_masks):
-            mask = None if packed is None else \
-                np.unpackbits(packed, count=size[0] * size[1]).reshape(size[1], size[0]).astype(bool)
-            vo.step(frame.image, timestamp=frame.timestamp, mask=mask)
-            n += 1
-    except InputError as exc:
-        # The first pass is a complete result: a frame that cannot be read again must not lose it.
-        refine["second_pass"] = f"no: reading the frames again failed ({exc})"
+    result, failed = _vo_again(source, vo_masks, size, Intrinsics(f1, f1, cx, cy),
+                               vo_config or config.vo, config, timings, occluded)
+    if result is None:
+        refine["second_pass"] = f"no: {failed}"
         first.refine = refine
         return first
-    if n != len(vo_masks):
-        refine["second_pass"] = f"no: the frames came back {n} instead of {len(vo_masks)}"
+    if not (result.parallax or {}).get("map_built", True):
+        refine["second_pass"] = (f"no: the focal length moved {100 * change:.1f} % but the VO "
+                                 f"run again from it built no map")
         first.refine = refine
         return first
-    result = vo.finish()
-    for stage, sec in result.timings.items():
-        timings[f"vo.{stage}"] = timings.get(f"vo.{stage}", 0.0) + sec
     result.refine = {**(result.refine or {}), "second_pass": (
         f"yes: the focal length moved {100 * change:.1f} % ({f0:.1f} -> {f1:.1f} px); the VO ran "
         f"again from it"), "first_pass": refine}
+    if "start_again" in refine:     # how the pass before this one got its map
+        result.refine["start_again"] = refine["start_again"]
     return result
 
 
@@ -408,9 +460,15 @@ class _Recorder:
             timings[f"vo.{stage}"] = sec
         repeat_of = np.array(self.repeat_of, np.int64)
         if self.may_rerun:
-            distinct = (f for f, r in zip(self.stream.source, repeat_of) if r < 0)
-            result = _second_pass(distinct, result, self.vo_masks, self.size, self.first_intr,
-                                  self.config, timings, occluded=self.stream.overlay)
+            def distinct():
+                return (f for f, r in zip(self.stream.source, repeat_of) if r < 0)
+
+            result, vo_config = _start_again(distinct(), result, self.vo_masks, self.size,
+                                             self.first_intr, self.config, timings,
+                                             occluded=self.stream.overlay)
+            result = _second_pass(distinct(), result, self.vo_masks, self.size, self.first_intr,
+                                  self.config, timings, occluded=self.stream.overlay,
+                                  vo_config=vo_config)
         if (repeat_of >= 0).any():
             result = _with_repeats(result, np.array(self.rows), repeat_of, self.stamps)
         return result
