@@ -225,6 +225,28 @@ def test_a_creep_on_a_focal_guess_too_long_starts_again_and_a_pan_does_not():
     assert np.allclose(still.vo.poses[:, :3, 3], 0.0)
 
 
+def test_a_second_pass_that_builds_no_map_keeps_the_first_pass():
+    # Finished work is never lost: on the Bonn clip without calibration four MONA draws built a
+    # map, the focal length moved more than 5 %, and the second pass, from it, built none and
+    # replaced the first (stop 47). Here the second read gives the first frame over and over, on
+    # which no VO can start a map: the first pass must stay, and the report says why.
+    from eval.vo_bench import render_sequence
+    from mona_vo.pipeline import PipelineConfig, _second_pass, estimate_trajectory
+    from data_tools.frames import Frame
+
+    scene, frames, masks = render_sequence("creep", 0, 40, 640, 272)
+    config = PipelineConfig()
+    first = estimate_trajectory(iter(frames), masks=list(masks), config=config).vo
+    assert first.parallax["map_built"]
+    assert abs(first.refine["focal_px"] / first.refine["focal_start_px"] - 1) > 0.05
+    poses = first.poses.copy()
+    still = [Frame(f.index, f.timestamp, f.name, frames[0].image) for f in frames]
+    start = scene.intrinsics
+    kept = _second_pass(still, first, [None] * len(frames), (640, 272), start, config, {})
+    assert kept is first and np.array_equal(kept.poses, poses)
+    assert kept.refine["second_pass"].startswith("no:") and "built no map" in kept.refine["second_pass"]
+
+
 def test_a_second_pass_that_cannot_read_the_frames_again_keeps_the_first_pass():
     # Finished work is never lost: the first pass is a complete result, so a frame that fails on
     # the second read leaves it in place, and the report says why.
