@@ -14,6 +14,7 @@ finish, so memory stays flat however long the video is (but for those packed mas
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -218,12 +219,27 @@ def camera_ahead(frames: Iterable, config: "PipelineConfig", width: int, height:
     return frames, estimate, camera_without_calib(estimate, config, width, height)
 
 
+def _pass_progress(progress: Callable | None, name: str) -> Callable[[int], None] | None:
+    """The caller's progress callback for a later VO pass over the same frames: called as
+    ``progress(frames, name)`` when it takes a pass name (a bar that restarts under it), else as
+    ``progress(frames)``, so a callback that only counts keeps working."""
+    if progress is None:
+        return None
+    try:
+        inspect.signature(progress).bind(0, name)
+    except (TypeError, ValueError):
+        return progress
+    return lambda n: progress(n, name)
+
+
 def _vo_again(source: Iterable, vo_masks: list, size, camera: Intrinsics, vo_config: VOConfig,
-              config: PipelineConfig, timings: dict, occluded: np.ndarray | None):
+              config: PipelineConfig, timings: dict, occluded: np.ndarray | None,
+              progress: Callable[[int], None] | None = None):
     """The VO once more over ``source`` (the distinct frames again) with the masks the first pass
     saw, from ``camera`` (not known: the global refinement frees its focal length). Returns
     (the result, None), or (None, why) when the frames cannot be read again or do not come back
-    the same: the first pass is a complete result and must not be lost to them."""
+    the same: the first pass is a complete result and must not be lost to them. ``progress``:
+    called with the frames this pass has finished (:func:`_pass_progress`)."""
     vo = VisualOdometry(vo_config, size[0], size[1], camera, tracker=config.build_tracker(),
                         camera_known=False, occluded=occluded)
     n = 0
@@ -233,6 +249,8 @@ def _vo_again(source: Iterable, vo_masks: list, size, camera: Intrinsics, vo_con
                 np.unpackbits(packed, count=size[0] * size[1]).reshape(size[1], size[0]).astype(bool)
             vo.step(frame.image, timestamp=frame.timestamp, mask=mask)
             n += 1
+            if progress is not None:
+                progress(n)
     except InputError as exc:
         return None, f"reading the frames again failed ({exc})"
     if n != len(vo_masks):
@@ -244,8 +262,8 @@ def _vo_again(source: Iterable, vo_masks: list, size, camera: Intrinsics, vo_con
 
 
 def _start_again(source: Iterable, first: VOResult, vo_masks: list, size, start: Intrinsics,
-                 config: PipelineConfig, timings: dict, occluded: np.ndarray | None = None
-                 ) -> tuple[VOResult, VOConfig]:
+                 config: PipelineConfig, timings: dict, occluded: np.ndarray | None = None,
+                 progress: Callable | None = None) -> tuple[VOResult, VOConfig]:
     """When the VO built no map while its parallax evidence says the camera translated (a slow
     creep), the VO again with the start's ray-angle test (``vo.init_min_parallax_deg``) taken as
     it would be at the widest field of view the focal estimate considers
@@ -269,7 +287,8 @@ def _start_again(source: Iterable, first: VOResult, vo_masks: list, size, start:
            f"{parallax.get('ratio')}); the start's ray-angle test was taken at a "
            f"{config.calibration.hfov_max_deg:g}-degree field of view: "
            f"{config.vo.init_min_parallax_deg:g} -> {angle:.3f} deg")
-    result, failed = _vo_again(source, vo_masks, size, start, vo_config, config, timings, occluded)
+    result, failed = _vo_again(source, vo_masks, size, start, vo_config, config, timings, occluded,
+                               _pass_progress(progress, "start again"))
     if result is None or not (result.parallax or {}).get("map_built", False):
         first.refine = {**(first.refine or {}), "start_again": (
             f"no: {failed}" if failed else f"tried, no map either: {why}")}
@@ -280,7 +299,7 @@ def _start_again(source: Iterable, first: VOResult, vo_masks: list, size, start:
 
 def _second_pass(source: Iterable, first: VOResult, vo_masks: list, size, start: Intrinsics,
                  config: PipelineConfig, timings: dict, occluded: np.ndarray | None = None,
-                 vo_config: VOConfig | None = None) -> VOResult:
+                 vo_config: VOConfig | None = None, progress: Callable | None = None) -> VOResult:
     """The VO again over ``source``, starting from the camera the first pass's global
     refinement found (and refining it again at its end), with ``vo_config`` (default
     ``config.vo``). The first pass built its map on the
@@ -304,7 +323,8 @@ def _second_pass(source: Iterable, first: VOResult, vo_masks: list, size, start:
         return first
     cx, cy = refine.get("centre_px", (start.cx, start.cy))
     result, failed = _vo_again(source, vo_masks, size, Intrinsics(f1, f1, cx, cy),
-                               vo_config or config.vo, config, timings, occluded)
+                               vo_config or config.vo, config, timings, occluded,
+                               _pass_progress(progress, "second pass"))
     if result is None:
         refine["second_pass"] = f"no: {failed}"
         first.refine = refine
@@ -465,10 +485,10 @@ class _Recorder:
 
             result, vo_config = _start_again(distinct(), result, self.vo_masks, self.size,
                                              self.first_intr, self.config, timings,
-                                             occluded=self.stream.overlay)
+                                             occluded=self.stream.overlay, progress=self.progress)
             result = _second_pass(distinct(), result, self.vo_masks, self.size, self.first_intr,
                                   self.config, timings, occluded=self.stream.overlay,
-                                  vo_config=vo_config)
+                                  vo_config=vo_config, progress=self.progress)
         if (repeat_of >= 0).any():
             result = _with_repeats(result, np.array(self.rows), repeat_of, self.stamps)
         return result
@@ -477,7 +497,7 @@ class _Recorder:
 def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
                         config: PipelineConfig | None = None,
                         on_frame: Callable[[FrameOutput], None] | None = None,
-                        progress: Callable[[int], None] | None = None,
+                        progress: Callable[..., None] | None = None,
                         detector=None) -> RunResult:
     """Camera trajectory of a frame stream.
 
@@ -488,7 +508,10 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     masks:      None, ``"mona"``, an iterable of (H, W) bool aligned with the frames, or a
                 callable ``frame -> mask``.
     on_frame:   called with a :class:`FrameOutput` for every frame, in order.
-    progress:   called with the number of frames finished so far (for a progress bar).
+    progress:   called with the number of frames finished so far (for a progress bar), and
+                during a later VO pass over the same frames (without intrinsics: ``_start_again``,
+                ``_second_pass``) with the count from 0 again, as ``progress(frames, name)``
+                when it takes a second argument.
     detector:   a :class:`mona_vo.detection.Detector` instance for MONA in place of the one
                 ``config.masks.detector`` names (benchmarks: a detector that reads the truth).
     """

@@ -20,12 +20,19 @@ from mona_vo.pipeline import FrameOutput, PipelineConfig, estimate_trajectory
 
 def _progress_bar(total: int | None, desc: str, enabled: bool):
     if not enabled:
-        return None, lambda n: None
+        return None, lambda n, name=None: None
     from tqdm import tqdm
 
     bar = tqdm(total=total, desc=desc, unit="frame", leave=False)
+    stage = [None]
 
-    def update(n):
+    def update(n, name=None):
+        # A later VO pass over the same frames (estimate_trajectory's progress) counts from 0
+        # again under its own name.
+        if name != stage[0]:
+            stage[0] = name
+            bar.reset(total=total)
+            bar.set_description(f"{desc}: {name}" if name else desc)
         bar.update(n - bar.n)
     return bar, update
 

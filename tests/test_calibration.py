@@ -210,8 +210,16 @@ def test_a_creep_on_a_focal_guess_too_long_starts_again_and_a_pan_does_not():
         calibration=FocalConfig(start_again=False)))
     assert off.vo.parallax["conclusion"] == "translation" and not off.vo.parallax["map_built"]
     assert np.allclose(off.vo.poses[:, :3, 3], 0.0)
-    run = estimate_trajectory(frames, masks=list(masks), config=PipelineConfig())
+    calls = []
+    run = estimate_trajectory(frames, masks=list(masks), config=PipelineConfig(),
+                              progress=lambda n, name=None: calls.append((name, n)))
     assert run.vo.refine["start_again"].startswith("yes"), run.vo.refine
+    # Each VO pass over the frames reports its own count from 0, by name, for its progress bar.
+    for name in (None, "start again", "second pass"):
+        assert [n for m, n in calls if m == name] == list(range(1, len(frames) + 1)), name
+    counts = []     # a callback that only counts keeps working through the later passes
+    estimate_trajectory(frames, masks=list(masks), config=PipelineConfig(), progress=counts.append)
+    assert counts == list(range(1, len(frames) + 1)) * 3
     assert run.vo.parallax["map_built"]
     gt = Trajectory(np.arange(len(frames), dtype=float), scene.poses())
     ate = evaluate_trajectory(gt, Trajectory(run.vo.timestamps, run.vo.poses)).ate_percent_of_path
