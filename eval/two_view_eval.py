@@ -60,22 +60,24 @@ def direction_error_deg(t_est: np.ndarray, t_gt: np.ndarray) -> float:
 
 def track_grid(image0: np.ndarray, image1: np.ndarray, *, grid_size: int | None = None,
                point_score: str | None = None) -> tuple[np.ndarray, np.ndarray, int]:
-    """Grid points of image0 tracked into image1 with the VO's tracker.
+    """Grid points of image0, seeded as the VO seeds them, tracked into image1 with its tracker.
 
     image0, image1: (H, W, 3) uint8 RGB (or (H, W) grey). grid_size defaults to
     :class:`mona_vo.vo.VOConfig`'s start grid (``start_grid``), point_score to its own.
     Returns (N, 2) float64 pixels x, y in image0, the same
     points in image1, and the number of points started.
     """
-    from mona_vo.point_selection import grid_points, texture_score
+    from mona_vo.point_selection import seed_points
     from mona_vo.tracking import to_gray
     from mona_vo.pipeline import PipelineConfig
     from mona_vo.vo import VOConfig
 
     cfg = VOConfig()
     k = grid_size or cfg.start_grid
-    score = texture_score(to_gray(image0), point_score or cfg.point_score)
-    pts = grid_points(score, k, k)
+    # The VO's own seeding rule (seed_points: its grid and its texture floor), so the pair
+    # measured is the pair the VO would start from.
+    pts = seed_points(to_gray(image0), k, point_score or cfg.point_score, cfg.point_min_score,
+                      cfg.point_quality)
     tracker = PipelineConfig().build_tracker()
     tracker.step(image0)
     ids = tracker.add_points(pts)

@@ -35,3 +35,20 @@ def test_noise_alone_never_passes_the_floor():
     need = adaptive_min_score(s, 3e-5, 0.1)
     assert need == 3e-5
     assert len(grid_points(s, 16, 16, min_score=need)) < 0.1 * 256
+
+
+def test_the_two_view_eval_seeds_the_pair_as_the_vo_seeds_its_start():
+    # eval.two_view_eval measures the start pair; on a weakly textured frame its points must be
+    # the ones the VO would seed there (the adaptive floor), not the fixed floor's few.
+    from eval.two_view_eval import track_grid
+    from mona_vo.point_selection import seed_points
+    from mona_vo.vo import VOConfig
+
+    img0 = _texture(contrast=40.0, blur=4.0)
+    img1 = np.roll(img0, 2, axis=1)
+    cfg = VOConfig()
+    vo_points = seed_points(img0, cfg.start_grid, cfg.point_score, cfg.point_min_score,
+                            cfg.point_quality)
+    _, _, started = track_grid(img0, img1)
+    fixed = len(grid_points(texture_score(img0, cfg.point_score), cfg.start_grid, cfg.start_grid))
+    assert started == len(vo_points) > fixed + 0.25 * cfg.start_grid ** 2
