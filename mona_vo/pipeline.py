@@ -5,7 +5,10 @@ without intrinsics, when the global refinement moves the focal length by more th
 ``calibration.second_pass_change`` and the frames can be read again (a list, a
 :class:`data_tools.frames.FrameSource`; not an iterator), the VO runs a second time with the
 refined camera and the masks of the first pass (kept for it, a bit per pixel: 38 KB per
-640 x 480 frame).
+640 x 480 frame). Before that, a first pass that built no map although its parallax says the
+camera translated runs once more with the start's ray-angle test taken at the widest field of
+view the focal estimate considers (``_start_again``), and a later pass that builds no map never
+replaces one that did.
 Masks come from MONA (``masks="mona"``, computed on the fly with a short look-ahead), from the
 caller (an iterable aligned with the frames, or a callable ``frame -> mask``), or not at all.
 Nothing is written here; ``on_frame`` lets the caller store masks or draw overlays as frames
