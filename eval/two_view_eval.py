@@ -1,7 +1,7 @@
 """Two-view initialisation on a real pair against ground truth (``mona-vo eval two-view``).
 
 The VO's own steps, nothing else: points on the VO's start grid, ``start_grid`` squared (best
-texture per cell, :func:`mona_vo.point_selection.grid_points` with the VO's score), tracked from
+texture per cell above the VO's floor, :func:`mona_vo.point_selection.seed_points`), tracked from
 image0 to image1 by the VO's default tracker (``lk``, :class:`mona_vo.tracking.LKTracker`, its
 forward-backward check dropping lost tracks), then :func:`mona_vo.two_view.relative_pose`
 (five-point RANSAC, unit-norm translation).

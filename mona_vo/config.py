@@ -30,7 +30,8 @@ RULE = "mona_vo.rule"   # key of a field's Rule in dataclasses.Field.metadata
 class Rule:
     """What one config value may be: bounds for numbers, a set of names for text (a tuple, or a
     registry whose ``names()`` are read when checked), a regular expression, or free text
-    (``text``: what it holds, e.g. "a file path; '' = from weights")."""
+    (``text``: what it holds, e.g. "a file path; '' = from weights"). ``zero``: 0 is allowed
+    besides the bounds (a key whose 0 stands for another key's value)."""
 
     ge: float | None = None
     gt: float | None = None
@@ -39,6 +40,7 @@ class Rule:
     choices: Any = None
     pattern: str | None = None
     text: str | None = None
+    zero: bool = False
 
     def names(self) -> list[str] | None:
         if self.choices is None:
@@ -56,7 +58,7 @@ class Rule:
             return f"text matching {self.pattern}"
         if self.text is not None:
             return f"text ({self.text})"
-        what = "an integer" if kind is int else "a number"
+        what = ("an integer" if kind is int else "a number") + (" 0 or" if self.zero else "")
         lo = ("[", self.ge) if self.ge is not None else ("(", self.gt) if self.gt is not None else None
         hi = ("]", self.le) if self.le is not None else (")", self.lt) if self.lt is not None else None
         if lo and hi:
@@ -71,6 +73,8 @@ class Rule:
         if isinstance(value, bool) or value is None:
             return True
         if isinstance(value, (int, float)):
+            if self.zero and value == 0:
+                return True
             return ((self.ge is None or value >= self.ge) and (self.gt is None or value > self.gt)
                     and (self.le is None or value <= self.le) and (self.lt is None or value < self.lt))
         names = self.names()
@@ -106,10 +110,11 @@ def _num(v: float) -> str:
 
 def setting(default: Any, *, ge: float | None = None, gt: float | None = None,
             le: float | None = None, lt: float | None = None, choices: Any = None,
-            pattern: str | None = None, text: str | None = None):
+            pattern: str | None = None, text: str | None = None, zero: bool = False):
     """A dataclass field with its default and its rule (see :class:`Rule`). Booleans need no
     bounds; numbers give at least one bound; text gives ``choices``, ``pattern`` or ``text``."""
-    rule = Rule(ge=ge, gt=gt, le=le, lt=lt, choices=choices, pattern=pattern, text=text)
+    rule = Rule(ge=ge, gt=gt, le=le, lt=lt, choices=choices, pattern=pattern, text=text,
+                zero=zero)
     return dataclasses.field(default=default, metadata={RULE: rule})
 
 

@@ -278,7 +278,7 @@ def _start_again(source: Iterable, first: VOResult, vo_masks: list, size, start:
     to keep (the first when the new one builds no map either) and the VO settings it ran with;
     ``refine['start_again']`` says what happened."""
     parallax = first.parallax or {}
-    if not config.calibration.start_again or parallax.get("map_built", True) \
+    if not config.calibration.start_again or first.map_built \
             or parallax.get("conclusion") != "translation":
         return first, config.vo
     wide = Intrinsics.default_for(size[0], size[1], config.calibration.hfov_max_deg).fx
@@ -292,7 +292,7 @@ def _start_again(source: Iterable, first: VOResult, vo_masks: list, size, start:
            f"{config.vo.init_min_parallax_deg:g} -> {angle:.3f} deg")
     result, failed = _vo_again(source, vo_masks, size, start, vo_config, config, timings, occluded,
                                _pass_progress(progress, "start again"))
-    if result is None or not (result.parallax or {}).get("map_built", False):
+    if result is None or not result.map_built:
         first.refine = {**(first.refine or {}), "start_again": (
             f"no: {failed}" if failed else f"tried, no map either: {why}")}
         return first, config.vo
@@ -332,7 +332,7 @@ def _second_pass(source: Iterable, first: VOResult, vo_masks: list, size, start:
         refine["second_pass"] = f"no: {failed}"
         first.refine = refine
         return first
-    if not (result.parallax or {}).get("map_built", True):
+    if not result.map_built:
         refine["second_pass"] = (f"no: the focal length moved {100 * change:.1f} % but the VO "
                                  f"run again from it built no map")
         first.refine = refine

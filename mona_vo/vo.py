@@ -81,9 +81,9 @@ class VOConfig:
     # The point tracker (its back end, device and checkpoint) is PipelineConfig's `tracker`,
     # shared with the masks; the VO is handed a Tracker instance.
     grid_size: int = setting(16, ge=2)      # k: new points on a k x k grid, one per cell
-    init_grid_size: int = setting(0, ge=0)  # ... and this k while no map exists (the start, and
-                                            # again after tracking is lost): 0 (grid_size) or
-                                            # at least 2. The start needs a median parallax,
+    init_grid_size: int = setting(0, ge=2, zero=True)  # ... and this k while no map exists
+                                            # (the start, and again after tracking is lost);
+                                            # 0: grid_size. The start needs a median parallax,
                                             # which many far points hold down (--preset
                                             # accurate: 16, map 24)
     point_score: str = setting("min_eigen", choices=("min_eigen", "gradient"))
@@ -216,9 +216,6 @@ class VOConfig:
 
     def validate(self) -> None:
         check_fields(self, "vo.")
-        if self.init_grid_size == 1:
-            raise ConfigError("config key 'vo.init_grid_size': expected 0 (the map's grid_size) "
-                              "or an integer >= 2, got 1")
         if self.window_keyframes <= self.fixed_keyframes:
             raise ConfigError(f"config keys 'vo.window_keyframes' ({self.window_keyframes}) and "
                               f"'vo.fixed_keyframes' ({self.fixed_keyframes}): the window must "
@@ -266,6 +263,11 @@ class VOResult:
     refine: dict = field(default_factory=dict)
     map_segments: list = field(default_factory=list)
     found_again: int = 0
+
+    @property
+    def map_built(self) -> bool:
+        """Whether the run built a map at all (else every pose is its rotation alone)."""
+        return bool(self.map_segments)
 
     @property
     def low_confidence(self) -> np.ndarray:
@@ -407,11 +409,11 @@ class VisualOdometry:
             [kf.observations(k)[0] for k in self.map.window] or [np.zeros(0, np.int64)]))
         pts = self.map.landmarks.positions(window_ids[self.map.landmarks.usable(window_ids)])
         focal = self._focal_fixed or self.default_intr.fx
-        built = self.map.keyframes.n > 0
+        spans = segment_spans(self.map.frame_segments())
         return VOResult(fr.timestamp[:n].copy(), poses, iskf, status, fr.inliers[:n].copy(),
                         dict(self.timings), dict(self.drops), float(focal), pts.reshape(-1, 3),
-                        self.evidence.as_dict(TRANSLATION_RATIO, built), float(self._rmse), refine,
-                        segment_spans(self.map.frame_segments()), self.found_again)
+                        self.evidence.as_dict(TRANSLATION_RATIO, bool(spans)), float(self._rmse),
+                        refine, spans, self.found_again)
 
     def _walk_back_start(self) -> int:
         """Frames before the first map that kept their rotation alone (the start waited for
