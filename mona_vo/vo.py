@@ -57,7 +57,8 @@ from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissi
                               drift_test, dynamic_test, estimate_pose, find_by_projection,
                               interpolate_pose, keyframe_needed, keyframe_shift_pct, pair_matches,
                               predict_pose, refine_pose, rotation_free_parallax_px, segment_spans,
-                              triangulate_against, typical_speed, typical_velocity, walk_back)
+                              triangulate_against, triangulation_angle_deg, typical_speed,
+                              typical_velocity, walk_back)
 
 
 def turn_homography(intr_b: Intrinsics, R_b_a: np.ndarray, intr_a: Intrinsics) -> np.ndarray:
@@ -154,6 +155,9 @@ class VOConfig:
                                             # no landmark, degrees
     triangulation_max_error_px: float = setting(2.0, gt=0)  # nor do rays that miss each other
                                             # by more, px
+    triangulation_starved_angle_deg: float = setting(0.1, ge=0, lt=90)  # ... but this, when
+                                            # fewer landmarks than half the grid's cells are
+                                            # in view (vo_steps.triangulation_angle_deg); 0: off
     dynamic_scale_px: float = setting(1.44, gt=0)  # Cauchy scale of a static point's residual,
                                             # px (geometry's 2-D formula: 1.44 puts p = 0.9 at
                                             # 3 px along a diagonal, 4.3 px along an axis)
@@ -843,9 +847,11 @@ class VisualOdometry:
             ids_k, uv_k, masked_k = kf.observations(k)
             ok = ~masked_k & ~m.landmarks.flagged(ids_k)
             views.append((kf.T_world_cam[k], kf.intrinsics(k), ids_k[ok], uv_k[ok]))
+        min_angle = triangulation_angle_deg(int(np.count_nonzero(m.landmarks.usable(s.ids))),
+                                            self.cfg.grid_size, self.cfg.triangulation_min_angle_deg,
+                                            self.cfg.triangulation_starved_angle_deg)
         new_ids, X = triangulate_against(views, s.ids[need], s.uv[need], intr, T_world_cam,
-                                         self.cfg.triangulation_max_error_px,
-                                         self.cfg.triangulation_min_angle_deg)
+                                         self.cfg.triangulation_max_error_px, min_angle)
         m.landmarks.set_positions(new_ids, X)
         seed_ids, seed_uv = self._new_points(gray, obs, mask)
         full = Observation(np.concatenate([obs.ids, seed_ids]), np.concatenate([obs.uv, seed_uv]),

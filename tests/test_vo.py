@@ -316,6 +316,8 @@ def test_tracks_sliding_along_depth_edges_are_dropped_and_the_trajectory_gains(m
     # where a near edge crosses the far background track well but are no points of the scene.
     # The keyframe dissimilarity check drops them -- several times more often than the other
     # tracks, measured against the true depth edges -- and the ATE falls (measured 1.05 -> 0.67 %).
+    # The smaller ray angle of a starved map (stop 48) is held off: with it this pan's map takes
+    # more far points and the check's gain shrinks to 0.92 -> 0.81 %; the scenario is the check's.
     from eval.metrics import Trajectory, evaluate_trajectory
 
     scene = SyntheticScene(SceneConfig(width=640, height=272, n_frames=40, preset="mixed", seed=207))
@@ -343,12 +345,14 @@ def test_tracks_sliding_along_depth_edges_are_dropped_and_the_trajectory_gains(m
         return out
 
     monkeypatch.setattr(VisualOdometry, "_drop_dissimilar", spy)
-    _, res = _run(scene, [r.image for r in rendered], [r.mask for r in rendered])
+    fixed_angle = {"triangulation_starved_angle_deg": 0.0}
+    _, res = _run(scene, [r.image for r in rendered], [r.mask for r in rendered], **fixed_angle)
     assert res.drops["tracks_dissimilar"] > 0
     assert np.mean(near_edge["dropped"]) > 2 * np.mean(near_edge["kept"]), near_edge
     ate = evaluate_trajectory(gt, Trajectory(t, res.poses)).ate_percent_of_path
     monkeypatch.setattr(VisualOdometry, "_drop_dissimilar", original)
-    _, off = _run(scene, [r.image for r in rendered], [r.mask for r in rendered], patch_dissimilarity=0.0)
+    _, off = _run(scene, [r.image for r in rendered], [r.mask for r in rendered],
+                  patch_dissimilarity=0.0, **fixed_angle)
     ate_off = evaluate_trajectory(gt, Trajectory(t, off.poses)).ate_percent_of_path
     assert ate < 0.8 * ate_off, (ate, ate_off)
 

@@ -10,7 +10,8 @@ from mona_vo.two_view import homography_parallax_px, normalize, relative_pose
 from mona_vo.vo_steps import (ParallaxEvidence, PoseSettings, drift_test, dynamic_test,
                               estimate_pose, interpolate_pose, keyframe_needed,
                               keyframe_shift_pct, predict_pose,
-                              rotation_free_parallax_px, triangulate_against)
+                              rotation_free_parallax_px, triangulate_against,
+                              triangulation_angle_deg)
 
 INTR = Intrinsics(500.0, 500.0, 320.0, 240.0)
 SETTINGS = PoseSettings(2.0, 12, 6.0, 0.3, 0.8)
@@ -160,6 +161,32 @@ def test_triangulation_needs_every_view_to_agree_so_a_mover_along_its_epipolar_l
     # With the oldest and the newest view alone, the movers pass: the check is what stops them.
     ids2, _ = triangulate_against(views[:1], np.arange(100), seen(2), INTR, cams[2], 2.0, 0.3)
     assert (ids2 >= 50).sum() >= 35
+
+
+def test_a_map_short_of_landmarks_takes_new_ones_at_a_smaller_ray_angle():
+    # A slow sideways step (2 cm, points 4-20 m away): most tracks are below the 0.3 deg angle
+    # but every view agrees on them. Starved (fewer landmarks in view than half of a 16 x 16
+    # grid's cells) the map takes them at 0.1 deg; with landmarks to spare it keeps 0.3.
+    assert triangulation_angle_deg(127, 16, 0.3, 0.1) == 0.1
+    assert triangulation_angle_deg(128, 16, 0.3, 0.1) == 0.3
+    assert triangulation_angle_deg(10, 16, 0.3, 0.0) == 0.3      # 0: off
+    assert triangulation_angle_deg(10, 16, 0.05, 0.1) == 0.05    # never stricter
+    P = _points(200, near=4.0, far=20.0)
+    cams = [np.eye(4), _pose(0, (0.01, 0, 0)), _pose(0, (0.02, 0, 0))]
+    views = [(c, INTR, np.arange(200), _see(c, P, 0.05, seed=i)) for i, c in enumerate(cams[:2])]
+    now = _see(cams[2], P, 0.05, seed=2)
+    strict, _ = triangulate_against(views, np.arange(200), now, INTR, cams[2], 2.0,
+                                    triangulation_angle_deg(200, 16, 0.3, 0.1))
+    starved, X = triangulate_against(views, np.arange(200), now, INTR, cams[2], 2.0,
+                                     triangulation_angle_deg(40, 16, 0.3, 0.1))
+    assert len(strict) < 40 and len(starved) > 2 * len(strict) + 40
+    depth_err = np.abs(X[:, 2] - P[starved, 2]) / P[starved, 2]
+    assert np.median(depth_err) < 0.2
+    # A point that rides with the camera (the same pixel in every view) stays out either way.
+    ride = np.array([[320.0, 240.0]])
+    rviews = [(c, INTR, np.array([7]), ride) for c in cams[:2]]
+    ids, _ = triangulate_against(rviews, np.array([7]), ride, INTR, cams[2], 2.0, 0.1)
+    assert len(ids) == 0
 
 
 def test_interpolate_pose_halfway():
