@@ -847,8 +847,9 @@ class VisualOdometry:
             ids_k, uv_k, masked_k = kf.observations(k)
             ok = ~masked_k & ~m.landmarks.flagged(ids_k)
             views.append((kf.T_world_cam[k], kf.intrinsics(k), ids_k[ok], uv_k[ok]))
-        min_angle = triangulation_angle_deg(int(np.count_nonzero(m.landmarks.usable(s.ids))),
-                                            self.cfg.grid_size, self.cfg.triangulation_min_angle_deg,
+        # s holds no flagged track, so its tracks with a position are the landmarks in view.
+        min_angle = triangulation_angle_deg(int(np.count_nonzero(~need)), self.cfg.grid_size,
+                                            self.cfg.triangulation_min_angle_deg,
                                             self.cfg.triangulation_starved_angle_deg)
         new_ids, X = triangulate_against(views, s.ids[need], s.uv[need], intr, T_world_cam,
                                          self.cfg.triangulation_max_error_px, min_angle)
