@@ -109,8 +109,8 @@ def resize_flow(flow: np.ndarray, width: int, height: int) -> np.ndarray:
     return out
 
 
-def chain_flows(flows, *, max_change_px: float = np.inf,
-                max_change_frac: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+def chain_flows(flows, *, max_change_px: float = np.inf, max_change_frac: float = np.inf,
+                unsure=None) -> tuple[np.ndarray, np.ndarray]:
     """Flow from frame t to frame t + k composed from k consecutive (h, w, 2) float32 flows
     ``t -> t+1, ..., t+k-1 -> t+k`` (one size): ``c(x) = c_prev(x) + u_next(x + c_prev(x))``,
     each lookup bilinear.
@@ -120,11 +120,14 @@ def chain_flows(flows, *, max_change_px: float = np.inf,
     before by more than ``max_change_px + max_change_frac * |previous step|`` pixels. A pixel
     that gets covered by another surface on the way takes that surface's flow from then on; the
     sudden change of step is how such a broken chain shows (a surface's own image velocity
-    changes smoothly from frame to frame).
+    changes smoothly from frame to frame). ``unsure``: optional, per flow an (h, w) bool map (or
+    None) of pixels whose vector is not to be trusted (:func:`forward_backward_mismatch`); a
+    chain that starts or lands on one is not trusted.
     """
     flows = list(flows)
     if not flows:
         raise ValueError("chain_flows needs at least one flow")
+    unsure = list(unsure) if unsure is not None else [None] * len(flows)
     out = np.array(flows[0], np.float32, copy=True)
     h, w = out.shape[:2]
     gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
@@ -134,10 +137,16 @@ def chain_flows(flows, *, max_change_px: float = np.inf,
         return (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
 
     valid = inside(out)
+    if unsure[0] is not None:
+        valid &= ~np.asarray(unsure[0], bool)
     step_prev = out.copy()
-    for f in flows[1:]:
+    for f, bad in zip(flows[1:], unsure[1:]):
         step = cv2.remap(np.asarray(f, np.float32), gx + out[..., 0], gy + out[..., 1],
                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        if bad is not None:
+            xi = np.clip(np.rint(gx + out[..., 0]), 0, w - 1).astype(np.int64)
+            yi = np.clip(np.rint(gy + out[..., 1]), 0, h - 1).astype(np.int64)
+            valid &= ~np.asarray(bad, bool)[yi, xi]
         if np.isfinite(max_change_px) or np.isfinite(max_change_frac):
             change = vector_lengths(step - step_prev)
             valid &= change <= max_change_px + max_change_frac * vector_lengths(step_prev)
@@ -145,6 +154,30 @@ def chain_flows(flows, *, max_change_px: float = np.inf,
         valid &= inside(out)
         step_prev = step
     return out, valid
+
+
+FB_RELATIVE = 0.01   # share of the squared vector lengths a forward-backward mismatch may add
+                     # (Sundaram, Brox and Keutzer, ECCV 2010: their occlusion test's 0.01)
+
+
+def forward_backward_mismatch(forward: np.ndarray, backward: np.ndarray,
+                              tolerance_px: float) -> np.ndarray:
+    """(h, w) bool: pixels whose forward vector (``forward``, frame a -> b) and the backward
+    vector (``backward``, b -> a) read where it lands do not cancel: ``|f + b|^2 > FB_RELATIVE
+    (|f|^2 + |b|^2) + tolerance_px^2`` (pixels of the flows; bilinear read; a vector leaving
+    the image counts as a mismatch). A flow that fits noise or an exposure change on a flat
+    wall wanders differently each way; a surface's own motion, textured or flat, is found both
+    ways. Occluded pixels fail too (they have no partner), which is the test's first use."""
+    f = np.asarray(forward, np.float32)
+    h, w = f.shape[:2]
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    x, y = gx + f[..., 0], gy + f[..., 1]
+    b = cv2.remap(np.asarray(backward, np.float32), x, y, cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_REPLICATE)
+    err = np.sum((f + b) ** 2, axis=2)
+    bound = FB_RELATIVE * (np.sum(f ** 2, axis=2) + np.sum(b ** 2, axis=2)) + tolerance_px ** 2
+    outside = (x < -0.5) | (x > w - 0.5) | (y < -0.5) | (y > h - 0.5)
+    return (err > bound) | outside
 
 
 def forward_warp_values(values: np.ndarray, flow: np.ndarray, fill: float = 0.0) -> np.ndarray:

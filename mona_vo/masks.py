@@ -89,7 +89,8 @@ from mona_vo.dynamic_points import (EPIPOLAR, HOMOGRAPHY, NO_MODEL, DynamicPoint
                                     adaptive_threshold, classify_window, default_intrinsics,
                                     fit_camera_motion, residual_map, turning_fast)
 from mona_vo.errors import ConfigError, InputError
-from mona_vo.flow import FLOWS, DISFlowConfig, Flow, chain_flows, forward_warp_mask
+from mona_vo.flow import (FLOWS, DISFlowConfig, Flow, chain_flows, forward_backward_mismatch,
+                          forward_warp_mask)
 from mona_vo import mask_evidence
 from mona_vo.mask_evidence import EvidenceConfig
 from mona_vo.point_selection import grid_points, texture_score
@@ -134,6 +135,11 @@ class MaskConfig:
                                             # by this (full-res px) + chain_change_frac x its
                                             # length, else the chain counts as broken (occlusion)
     chain_change_frac: float = setting(0.3, ge=0)  # see chain_change_px
+    flow_check_px: float = setting(0.0, ge=0)  # a pixel whose flow to the next frame and that
+                                            # frame's flow back disagree by more than this
+                                            # (analysis pixels, plus flow.FB_RELATIVE of the
+                                            # vectors' lengths) gives no motion observation
+                                            # (0: no check; costs a second flow per frame)
     motion_grid_cols: int = setting(24, ge=2)  # motion-map camera fit: grid columns (anchor rule)
     motion_grid_rows: int = setting(10, ge=2)  # motion-map camera fit: grid rows
     motion_model_threshold_px: float = setting(0.25, gt=0)  # robust-fit threshold of that fit,
@@ -271,6 +277,8 @@ class MonaMasker:
         self._index: dict[int, int] = {}                # position -> frame index given
         self._images: dict[int, np.ndarray] = {}        # position -> image, until emitted
         self._flows: dict[int, np.ndarray] = {}         # position p -> flow p -> p+1, analysis
+        self._unsure: dict[int, np.ndarray] = {}        # position p -> pixels failing the
+                                                        # flow check (flow_check_px)
         self._m: dict[int, float] = {}                  # position -> m_t
         self._dyn: dict[int, DynamicPoints] = {}        # position -> dynamic points
         self._reserve: DynamicPoints | None = None      # last frame of the last closed window
@@ -366,7 +374,7 @@ class MonaMasker:
         last = self._n - 1
         if last > 0 and last not in self._flows and last in self._images:
             # The last frame has no successor: its flow goes backwards, to the frame before.
-            self._add_flow(last, self._last_image, self._prev_image)
+            self._add_flow(last, self._last_image, self._prev_image, check=False)
         window = self._points.flush()
         if window is not None:
             self._classify(window, final=True)
@@ -383,11 +391,16 @@ class MonaMasker:
     def _analysis_size(self) -> tuple[int, int]:
         return working_size(*self._size, self.config.analysis_size)
 
-    def _add_flow(self, p: int, image0, image1) -> None:
-        """Flow of frame p (image0) to image1, kept at the analysis resolution, and its m_t."""
+    def _add_flow(self, p: int, image0, image1, check: bool = True) -> None:
+        """Flow of frame p (image0) to image1, kept at the analysis resolution, and its m_t;
+        with ``flow_check_px`` (and ``check``) also the pixels whose flow back disagrees."""
         t0 = time.perf_counter()
         w, h = self._analysis_size()
         self._flows[p], self._m[p] = self.flow.compute_resized(image0, image1, w, h)
+        if check and self.config.flow_check_px > 0:
+            back, _ = self.flow.compute_resized(image1, image0, w, h)
+            self._unsure[p] = forward_backward_mismatch(self._flows[p], back,
+                                                        self.config.flow_check_px)
         self._seconds[p]["flow"] += time.perf_counter() - t0
 
     def _classify(self, window, final: bool) -> None:
@@ -421,9 +434,13 @@ class MonaMasker:
             # drift and smear (background pixels later covered by a mover inherit its flow).
             travelled = np.cumsum([self._m[q] for q in range(p, p + gap)])
             gap = int(min(gap, np.searchsorted(travelled, cfg.motion_travel_px) + 1))
+            # No observation where a step's flow fails its own check (flow_check_px): a flat
+            # wall's flow wanders with noise and exposure (Bonn crowd's first frames: 10-20 px
+            # per frame there, a mask a fifth of the image).
             cum, valid = chain_flows([self._flows[q] for q in range(p, p + gap)],
                                      max_change_px=cfg.chain_change_px * scale,
-                                     max_change_frac=cfg.chain_change_frac)
+                                     max_change_frac=cfg.chain_change_frac,
+                                     unsure=[self._unsure.get(q) for q in range(p, p + gap)])
             m_pair = float(np.mean([self._m[q] for q in range(p, p + gap)]))
         elif p in self._flows:           # the last frame: flow to the previous frame
             gap = 1
@@ -431,11 +448,14 @@ class MonaMasker:
             m_pair = self._m[p]
         else:
             return None
+        unsure = self._unsure.get(p)
         score = texture_score(grey, cfg.dynamic_points.anchor_score)
         out = self._residual(p, score, cum, valid, gap, m_pair, model)
         if gap > 1 and not valid.all():
             # Pixels whose chain left the image: the single-step flow still sees them.
             first, valid1 = chain_flows([self._flows[p]])
+            if unsure is not None:
+                valid1 &= ~unsure
             short = self._residual(p, score, first, valid1, 1, self._m[p], model,
                                    where=valid1 & ~valid)
             out = np.where(valid, out, short)
@@ -597,6 +617,7 @@ class MonaMasker:
         # Release what no later frame needs: later motion maps chain flows from p + 1 on, and
         # later frames' m_t are their own (or, for the last frame, its backward flow's).
         self._prev_map, self._prev_flow = mmap, self._flows.pop(p, None)
+        self._unsure.pop(p, None)
         self._logodds, self._found = a.logodds, found
         self._m.pop(p - 1, None)
         self._pending = (a, done, boxes, kept, filt)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from mona_vo.flow import (FLOWS, DISFlow, DISFlowConfig, Flow, chain_flows, flow_edges,
-                          forward_warp_mask, forward_warp_values, mean_flow_magnitude,
-                          resize_flow, vector_lengths)
+                          forward_backward_mismatch, forward_warp_mask, forward_warp_values,
+                          mean_flow_magnitude, resize_flow, vector_lengths)
 
 # Measured on alley_1 frame_0002 -> frame_0003 (clean) with the default DIS settings (medium
 # preset at half resolution): EPE 0.47 px over the non-occluded pixels (GT mean motion 3.0 px).
@@ -103,6 +103,42 @@ def test_chain_flows_flags_sudden_changes_of_step():
     b[:, 10:, 0] = 0.0               # what lands at x >= 10 moves differently (an occluder)
     _, valid = chain_flows([a, b], max_change_px=0.5, max_change_frac=0.2)
     assert valid[:, :7].all() and not valid[:, 8:20].any()
+
+
+def test_chain_flows_does_not_trust_a_chain_through_an_unsure_vector():
+    f = np.zeros((20, 30, 2), np.float32)
+    f[..., 0] = 3.0
+    bad0 = np.zeros((20, 30), bool)
+    bad0[5, 2] = True                    # the first step's vector at (x 2, y 5)
+    bad1 = np.zeros((20, 30), bool)
+    bad1[10, 13] = True                  # the second step, where x = 10 lands after one step
+    _, valid = chain_flows([f, f], unsure=[bad0, bad1])
+    assert not valid[5, 2] and not valid[10, 10]
+    assert valid[5, 3] and valid[10, 13] and valid[10, 9]
+    _, plain = chain_flows([f, f])
+    assert np.count_nonzero(plain & ~valid) == 2
+
+
+def test_forward_backward_mismatch_finds_flow_that_does_not_come_back():
+    h, w = 40, 60
+    fw = np.zeros((h, w, 2), np.float32)
+    fw[..., 0] = 4.0
+    bw = -fw.copy()                           # a pan, found both ways
+    assert not forward_backward_mismatch(fw, bw, 0.5)[:, :50].any()
+    # A patch whose forward flow wanders (a flat wall) while the way back says "pan".
+    fw[10:20, 10:20] = (4.0, 3.0)
+    bad = forward_backward_mismatch(fw, bw, 0.5)
+    assert bad[12:18, 12:18].all() and not bad[25:, :50].any()
+    # The tolerance grows with the vectors (FB_RELATIVE): 10 % of a 40 px motion passes.
+    wide_f = np.zeros((h, 200, 2), np.float32)
+    wide_f[..., 0] = 40.0
+    wide_b = -wide_f.copy()
+    wide_b[..., 1] = 4.0                      # |f + b|^2 = 16 < 0.01 (1600 + 1616) + 0.25
+    assert not forward_backward_mismatch(wide_f, wide_b, 0.5)[:, :150].any()
+    wide_b[..., 1] = 7.0                      # 49 > 32.7
+    assert forward_backward_mismatch(wide_f, wide_b, 0.5)[:, :150].all()
+    # Pixels whose vector leaves the image have no way back.
+    assert forward_backward_mismatch(wide_f, wide_b * 0 - wide_f, 0.5)[:, 170:].all()
 
 
 def test_registry_names_dis_and_a_lazy_raft_loader():
