@@ -14,19 +14,18 @@ that the pixel is on a moving object) and changes it by small pure steps, one pe
                threshold) gives ``2 log z`` -- the log-odds of the Cauchy dynamic probability
                ``1 - 1 / (1 + z^2)`` at scale theta, zero at the threshold -- clipped to
                ``[obs_min, obs_max]``; pixels without a valid residual (0 in the map) observe
-               nothing. With ``texture_ref`` > 0 positive values are weighted by
-               ``s / (s + texture_ref)``, ``s`` the min-eigen texture score of the frame at the
-               map's resolution: on a flat sky or wall the flow is interpolated from around it,
-               not measured. Off by default: at 1e-4 DAVIS J rose (tuning 0.487 -> 0.539,
-               validation 0.483 -> 0.498; parkour's false-positive area 7.7 -> 3.5 % of the
-               image), but people in flat clothes before a white wall lost evidence too, and on
-               Bonn crowd frames 0-449 the MONA runs' ATE rose in every one of five draws (mean
-               4.53 -> 6.96 cm; 3e-5: 7.01 cm). Measured again at stop 33 (README, Masks): DAVIS
-               0.499 -> 0.545 / 0.486 -> 0.505, but a generated walker in a flat top lost his
-               torso's mask and MONA's ATE went 0.15 -> 2.06 % of path (1.27 % without masks):
-               a masked flat sky costs the VO nothing, an unmasked flat person much.
-               A reference relative to the frame's median lost a
-               generated red car smoother than the rock wall behind it for three frames.
+               nothing. Positive values are weighted by ``s / (s + texture_ref)``, ``s`` the
+               min-eigen texture score of the frame at the map's resolution: on a flat sky or
+               wall the flow is interpolated from around it, not measured (Bonn crowd's first
+               frames: a white wall's flow wanders 1-2 px per frame off the camera's, the same
+               way forward and backward, and its mask held a fifth of the image). Connected
+               positive pixels holding ``texture_exempt_points`` dynamic points keep their full
+               value: a mover in flat clothes moves with its textured outline, where its tracks
+               lie. The weight alone (stops 32-33, README Masks) cost exactly those people: a
+               generated walker in a flat top lost his torso's mask (MONA 0.15 -> 2.06 % of
+               path) and Bonn's MONA runs rose in every draw (4.53 -> 6.96 cm). A reference
+               relative to the frame's median lost a generated red car smoother than the rock
+               wall behind it for three frames.
                Dynamic points (judged over their whole track window, so they see a mover in
                frames where the dense test does not) add ``point_gain`` times their Cauchy
                probability within ``point_radius_frac`` of the image diagonal.
@@ -97,9 +96,12 @@ class EvidenceConfig:
                                   # of a flow discontinuity larger than this (map pixels) carries
                                   # no positive evidence (its flow mixes two motions)
     edge_radius: int = setting(2, ge=0)  # see edge_change_px (map pixels; 0: only the pixel)
-    texture_ref: float = setting(0.0, ge=0)  # the dense test's positive evidence is weighted
+    texture_ref: float = setting(1e-4, ge=0)  # the dense test's positive evidence is weighted
                                   # by s / (s + this), s the min-eigen texture score of the
                                   # analysis-resolution grey image (0: unweighted; see observe)
+    texture_exempt_points: int = setting(2, ge=0)  # ... except on connected pixels of positive
+                                  # dense evidence holding at least this many dynamic points
+                                  # (0: no exemption)
     seeded_noise_factor: float = setting(0.0, ge=0)  # dense components above this x the
                                   # map's robust spread, holding seeded_min_points dynamic
                                   # points, observe point_gain (0: off; see observe)
@@ -164,7 +166,11 @@ def observe(motion_map: np.ndarray | None, theta: float, shape: tuple[int, int],
         obs = np.clip(2.0 * np.log(z), config.obs_min, config.obs_max)
         if texture is not None and config.texture_ref > 0:
             s = np.maximum(np.asarray(texture, np.float32), 0.0)
-            obs = np.where(obs > 0, obs * s / (s + config.texture_ref), obs)
+            weight = s / (s + config.texture_ref)
+            if config.texture_exempt_points > 0 and len(points):
+                weight = np.where(_holding_points(valid & (obs > 0), points, full_width,
+                                                  config.texture_exempt_points), 1.0, weight)
+            obs = np.where(obs > 0, obs * weight, obs)
         out[valid] = obs[valid]
     pts = np.asarray(points, np.float64).reshape(-1, 2)
     if config.point_gain > 0 and len(pts):
@@ -180,6 +186,22 @@ def observe(motion_map: np.ndarray | None, theta: float, shape: tuple[int, int],
         # window sees motion along the epipolar lines that one frame pair does not.
         out = np.where(bump > 0, np.maximum(out, 0.0) + bump, out)
     return out
+
+
+def _holding_points(region: np.ndarray, points: np.ndarray, full_width: int,
+                    min_points: int) -> np.ndarray:
+    """(h, w) bool: the 8-connected parts of ``region`` that hold at least ``min_points`` of
+    the (N, 2) full-resolution ``points``. A mover in flat clothes moves with its textured
+    outline, where the tracks that found it lie; a flat wall whose flow wanders holds none."""
+    n, labels = cv2.connectedComponents(region.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros(region.shape, bool)
+    h, w = region.shape
+    ij = map_pixels(np.asarray(points, np.float64).reshape(-1, 2), full_width, w)
+    ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+    hits = np.bincount(labels[ij[ok, 1], ij[ok, 0]], minlength=n)
+    hits[0] = 0
+    return (hits >= min_points)[labels]
 
 
 def motion_spread(motion_map: np.ndarray) -> float:

@@ -146,8 +146,27 @@ def test_with_texture_ref_a_residual_where_the_image_is_flat_is_weak_evidence():
     assert obs[30, 45] < 0.01 * plain[30, 45]
     # Evidence against motion (residual below theta) is not weakened.
     assert obs[0, 0] == pytest.approx(plain[0, 0])
-    off = ev.observe(mmap, THETA, (H, W), NO_POINTS, NO_RES, W, CFG, texture)   # the default
+    off = ev.observe(mmap, THETA, (H, W), NO_POINTS, NO_RES, W,
+                     dataclasses.replace(CFG, texture_ref=0.0), texture)          # 0: off
     np.testing.assert_array_equal(off, plain)
+
+
+def test_flat_motion_that_holds_dynamic_points_is_exempt_from_the_texture_weight():
+    # Two flat patches moving alike: a mover in a plain shirt, its tracks on its outline (two
+    # dynamic points in the patch's connected motion), and a bare wall whose flow wanders (none).
+    cfg = dataclasses.replace(CFG, texture_ref=1e-4, texture_exempt_points=2, point_gain=0.0)
+    mmap = _map((5, 20, 5, 20), value=4.0)
+    mmap[5:20, 40:55] = 4.0
+    texture = np.full((H, W), 1e-3 * cfg.texture_ref, np.float32)
+    weak = np.full(3, 10.0, np.float32)
+    outline = np.array([[6.0, 6.0], [18.0, 19.0], [47.0, 12.0]], np.float32)  # map px = full px
+    obs = ev.observe(mmap, THETA, (H, W), outline, weak, W, cfg, texture)
+    plain = ev.observe(mmap, THETA, (H, W), outline, weak, W, cfg)
+    assert obs[12, 12] == pytest.approx(plain[12, 12])          # two points: the mover
+    assert obs[12, 47] < 0.01 * plain[12, 47]                    # one point: not enough
+    none = ev.observe(mmap, THETA, (H, W), outline, weak, W,
+                      dataclasses.replace(cfg, texture_exempt_points=0), texture)
+    assert none[12, 12] < 0.01 * plain[12, 12]                   # no exemption: both weak
 
 
 def test_segmentation_bound_is_the_grown_convex_hull_of_the_regions():

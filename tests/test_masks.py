@@ -237,11 +237,12 @@ def test_davis_region_similarity_above_measured_floor(shared_subdir, seq):
 
 
 def test_texture_ref_keeps_flat_sky_from_seeding_movers_on_davis_parkour(shared_subdir):
-    """With ``evidence.texture_ref`` a residual where the image is flat is weak evidence. Measured
-    on parkour (a tuning sequence: a camera following a runner past a wall under a flat sky),
-    with the camera `mona-vo masks` estimates: false-positive area 7.7 -> 3.5 % of the image,
-    recall 0.90 -> 0.87. Off by default: it cost the VO on Bonn crowd (mask_evidence's
-    docstring); this pins what the option does."""
+    """With ``evidence.texture_ref`` (the default since stop 49) a residual where the image is
+    flat is weak evidence unless its connected motion holds dynamic points
+    (``texture_exempt_points``). Measured on parkour (a tuning sequence: a camera following a
+    runner past a wall under a flat sky), with the camera `mona-vo masks` estimates, against
+    ``texture_ref=0``: false-positive area 6.7 -> 4.8 % of the image, recall 0.93 -> 0.95 (the
+    weight without the exemption, stop 33: 7.7 -> 3.5 %, recall 0.90 -> 0.87)."""
     from data_tools.davis import DavisSequence
     from mona_vo.pipeline import PipelineConfig, camera_ahead
 
@@ -251,16 +252,16 @@ def test_texture_ref_keeps_flat_sky_from_seeding_movers_on_davis_parkour(shared_
     frames = [f.image for f in ds.frames()]
     gts = list(ds.masks())
     stats = {}
-    for ref in (MaskConfig().evidence.texture_ref, 1e-4):
+    for ref in (0.0, MaskConfig().evidence.texture_ref):
         cfg = MaskConfig()
         cfg = dataclasses.replace(cfg, evidence=dataclasses.replace(cfg.evidence, texture_ref=ref))
         masks = [o.mask for o in compute_masks(list(enumerate(frames)), cfg, camera)]
         fp = np.mean([(m & ~g).mean() for m, g in zip(masks, gts)])
         recall = sum((m & g).sum() for m, g in zip(masks, gts)) / sum(g.sum() for g in gts)
         stats[ref] = fp, recall
-    (fp_off, _), (fp_on, rec_on) = stats.values()
-    assert fp_on < 0.6 * fp_off
-    assert rec_on > 0.8
+    (fp_off, rec_off), (fp_on, rec_on) = stats.values()
+    assert fp_on < 0.8 * fp_off
+    assert rec_on > max(0.85, rec_off - 0.03)
 
 
 def _context(motion_map=None, dynamic=(), tracked=None, prior=None, theta=0.5, residual=None):
