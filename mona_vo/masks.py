@@ -434,9 +434,8 @@ class MonaMasker:
             # drift and smear (background pixels later covered by a mover inherit its flow).
             travelled = np.cumsum([self._m[q] for q in range(p, p + gap)])
             gap = int(min(gap, np.searchsorted(travelled, cfg.motion_travel_px) + 1))
-            # No observation where a step's flow fails its own check (flow_check_px): a flat
-            # wall's flow wanders with noise and exposure (Bonn crowd's first frames: 10-20 px
-            # per frame there, a mask a fifth of the image).
+            # No observation where a step's flow fails its own check (flow_check_px, off by
+            # default): occlusions and flow fitted to noise.
             cum, valid = chain_flows([self._flows[q] for q in range(p, p + gap)],
                                      max_change_px=cfg.chain_change_px * scale,
                                      max_change_frac=cfg.chain_change_frac,
