@@ -175,10 +175,13 @@ def test_frames_where_tracking_is_lost_carry_the_walk_on_until_a_new_map():
 
 def test_frames_before_the_first_map_walk_back_along_its_first_velocity(monkeypatch):
     """Generated 'mixed' seed 203 (a tuning seed): a fast turn while walking, 0.08 m per frame,
-    opening on a near-blank wall. The start waits until frame 9; frames 0-8 have almost nothing
-    to track and keep their rotation alone. Left where the map starts, they put 0.7 m of walk into the
-    error (ATE 6.0 % of path with true masks); walked back along the map's first body velocity,
-    2.2 %."""
+    opening on a near-blank wall. The start waits (until frame 9 on stop 47's host, 15 on stop
+    49's); the frames before have almost nothing to track and keep their rotation alone. Left
+    where the map starts, they put their walk into the error; walked back along the map's first
+    body velocity, they do not. Scored on the frames up to ten after the start, so that what the
+    rest of this fast turn does (a chaotic run: the whole clip gave 6.0 -> 2.2 % of path on stop
+    47's host, 13.6 -> 10.1 % on stop 49's) does not stand in for the walk-back: stop 49's host
+    17.4 -> 2.8 %."""
     from eval.metrics import Trajectory, evaluate_trajectory
     from eval.vo_bench import render_sequence
     from mona_vo.pipeline import PipelineConfig, estimate_trajectory
@@ -187,22 +190,25 @@ def test_frames_before_the_first_map_walk_back_along_its_first_velocity(monkeypa
     gt = Trajectory(np.arange(40, dtype=float), scene.poses())
 
     def run():
-        res = estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=list(masks),
-                                  config=PipelineConfig()).vo
-        ate = evaluate_trajectory(gt, Trajectory(res.timestamps, res.poses)).ate_percent_of_path
-        return res, ate
+        return estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=list(masks),
+                                   config=PipelineConfig()).vo
 
-    res, ate = run()
+    def early_ate(res, n):
+        return evaluate_trajectory(Trajectory(gt.timestamps[:n], gt.poses_T_world_cam[:n]),
+                                   Trajectory(res.timestamps[:n], res.poses[:n])).ate_percent_of_path
+
+    res = run()
     first = next(i for i, s in enumerate(res.status) if s != "extrapolated")
+    ate = early_ate(res, first + 11)
     assert first >= 5 and res.status[first] == "keyframe"
     c = res.poses[:, :3, 3]
     usual = np.median(np.linalg.norm(np.diff(c[first:first + 10], axis=0), axis=1))
     steps = np.linalg.norm(np.diff(c[:first + 1], axis=0), axis=1)
     assert np.all(steps > 0.5 * usual) and np.all(steps < 2.0 * usual)
     monkeypatch.setattr(VisualOdometry, "_walk_back_start", lambda self: 0)
-    still, ate_still = run()
+    still = run()
     assert still.status[:first] == ["rotation-only"] * first   # the case still arises
-    assert ate < 0.5 * ate_still
+    assert ate < 0.5 * early_ate(still, first + 11)
 
 
 def _turn_error_deg(poses_est, poses_gt):
