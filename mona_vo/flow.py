@@ -109,6 +109,11 @@ def resize_flow(flow: np.ndarray, width: int, height: int) -> np.ndarray:
     return out
 
 
+def _inside(x: np.ndarray, y: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Positions x, y (pixel centres at integers) that lie on a w x h image."""
+    return (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+
+
 def chain_flows(flows, *, max_change_px: float = np.inf, max_change_frac: float = np.inf,
                 unsure=None) -> tuple[np.ndarray, np.ndarray]:
     """Flow from frame t to frame t + k composed from k consecutive (h, w, 2) float32 flows
@@ -133,8 +138,7 @@ def chain_flows(flows, *, max_change_px: float = np.inf, max_change_frac: float 
     gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
 
     def inside(flow):
-        x, y = gx + flow[..., 0], gy + flow[..., 1]
-        return (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+        return _inside(gx + flow[..., 0], gy + flow[..., 1], w, h)
 
     valid = inside(out)
     if unsure[0] is not None:
@@ -178,8 +182,7 @@ def forward_backward_mismatch(forward: np.ndarray, backward: np.ndarray,
                   borderMode=cv2.BORDER_REPLICATE)
     err = np.sum((f + b) ** 2, axis=2)
     bound = FB_RELATIVE * (np.sum(f ** 2, axis=2) + np.sum(b ** 2, axis=2)) + tolerance_px ** 2
-    outside = (x < -0.5) | (x > w - 0.5) | (y < -0.5) | (y > h - 0.5)
-    return (err > bound) | outside
+    return (err > bound) | ~_inside(x, y, w, h)
 
 
 def forward_warp_values(values: np.ndarray, flow: np.ndarray, fill: float = 0.0) -> np.ndarray:

@@ -168,8 +168,8 @@ def observe(motion_map: np.ndarray | None, theta: float, shape: tuple[int, int],
             s = np.maximum(np.asarray(texture, np.float32), 0.0)
             weight = s / (s + config.texture_ref)
             if config.texture_exempt_points > 0 and len(points):
-                weight = np.where(_holding_points(valid & (obs > 0), points, full_width,
-                                                  config.texture_exempt_points), 1.0, weight)
+                weight = np.where(holding_points(valid & (obs > 0), points, full_width,
+                                                 config.texture_exempt_points), 1.0, weight)
             obs = np.where(obs > 0, obs * weight, obs)
         out[valid] = obs[valid]
     pts = np.asarray(points, np.float64).reshape(-1, 2)
@@ -188,20 +188,25 @@ def observe(motion_map: np.ndarray | None, theta: float, shape: tuple[int, int],
     return out
 
 
-def _holding_points(region: np.ndarray, points: np.ndarray, full_width: int,
-                    min_points: int) -> np.ndarray:
-    """(h, w) bool: the 8-connected parts of ``region`` that hold at least ``min_points`` of
-    the (N, 2) full-resolution ``points``. A mover in flat clothes moves with its textured
-    outline, where the tracks that found it lie; a flat wall whose flow wanders holds none."""
-    n, labels = cv2.connectedComponents(region.astype(np.uint8), connectivity=8)
-    if n <= 1:
-        return np.zeros(region.shape, bool)
+def holding_points(region: np.ndarray, points: np.ndarray, full_width: int,
+                   min_points: int) -> np.ndarray:
+    """(h, w) bool: the 8-connected parts of the (h, w) bool ``region`` that hold at least
+    ``min_points`` of the (N, 2) full-resolution ``points`` (non-finite ones left out, the
+    others clipped to the map). A mover moves with the tracks that found it: a mover in flat
+    clothes with its textured outline, a slow one with its long-term tracks; a flat wall whose
+    flow wanders, or a rippling background, holds none."""
+    out = np.zeros(region.shape, bool)
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if not len(pts):
+        return out
+    _, labels = cv2.connectedComponents(np.asarray(region, np.uint8), connectivity=8)
     h, w = region.shape
-    ij = map_pixels(np.asarray(points, np.float64).reshape(-1, 2), full_width, w)
-    ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
-    hits = np.bincount(labels[ij[ok, 1], ij[ok, 0]], minlength=n)
-    hits[0] = 0
-    return (hits >= min_points)[labels]
+    c = np.clip(map_pixels(pts, full_width, w), 0, [w - 1, h - 1])
+    hit = labels[c[:, 1], c[:, 0]]
+    ids, counts = np.unique(hit[hit > 0], return_counts=True)
+    ids = ids[counts >= min_points]
+    return np.isin(labels, ids) if len(ids) else out
 
 
 def motion_spread(motion_map: np.ndarray) -> float:
@@ -221,22 +226,12 @@ def seeded_regions(motion_map: np.ndarray, points: np.ndarray, full_width: int,
     more than ``max_share`` of the map (no object is that large; a rippling or flickering
     background is)."""
     mm = np.asarray(motion_map, np.float32)
-    out = np.zeros(mm.shape, bool)
-    pts = np.asarray(points, np.float64).reshape(-1, 2)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if config.seeded_noise_factor <= 0 or not len(pts) or spread_px <= 0:
-        return out
-    floor = config.seeded_noise_factor * spread_px
-    _, labels = cv2.connectedComponents((mm > floor).astype(np.uint8), connectivity=8)
-    h, w = mm.shape
-    c = np.clip(map_pixels(pts, full_width, w), 0, [w - 1, h - 1])
-    hit = labels[c[:, 1], c[:, 0]]
-    ids, counts = np.unique(hit[hit > 0], return_counts=True)
-    ids = ids[counts >= config.seeded_min_points]
-    if len(ids):
-        out = np.isin(labels, ids)
-        if out.mean() > max_share:
-            out[:] = False
+    if config.seeded_noise_factor <= 0 or spread_px <= 0:
+        return np.zeros(mm.shape, bool)
+    out = holding_points(mm > config.seeded_noise_factor * spread_px, points, full_width,
+                         config.seeded_min_points)
+    if out.mean() > max_share:
+        out[:] = False
     return out
 
 

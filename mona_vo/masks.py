@@ -447,14 +447,11 @@ class MonaMasker:
             m_pair = self._m[p]
         else:
             return None
-        unsure = self._unsure.get(p)
         score = texture_score(grey, cfg.dynamic_points.anchor_score)
         out = self._residual(p, score, cum, valid, gap, m_pair, model)
         if gap > 1 and not valid.all():
             # Pixels whose chain left the image: the single-step flow still sees them.
-            first, valid1 = chain_flows([self._flows[p]])
-            if unsure is not None:
-                valid1 &= ~unsure
+            first, valid1 = chain_flows([self._flows[p]], unsure=[self._unsure.get(p)])
             short = self._residual(p, score, first, valid1, 1, self._m[p], model,
                                    where=valid1 & ~valid)
             out = np.where(valid, out, short)
