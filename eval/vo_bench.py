@@ -20,6 +20,7 @@ import argparse
 import resource
 import sys
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -56,13 +57,18 @@ def render_sequence(preset: str, seed: int, n_frames: int, width: int, height: i
 
 def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
                 calib: str = "given", gt_poses: np.ndarray | None = None,
-                camera=None) -> dict:
+                camera=None, mona: "MonaReplay | None" = None) -> dict:
     """One run. ``calib``: ``given`` passes the scene's true intrinsics (``camera`` when the
     frames were seen through a lens: a LensIntrinsics); ``pinhole`` the true fx, fy, cx, cy
     without the lens (a run that ignores the distortion); ``estimate`` passes none, as `mona-vo
     run` without --calib (the focal length is estimated, or guessed).
-    ``gt_poses``: the true pose of each frame when it is not the scene's (repeated frames)."""
+    ``gt_poses``: the true pose of each frame when it is not the scene's (repeated frames).
+    ``mona``: for the ``mona`` variant, a :class:`MonaReplay` that records the masks this run
+    hands the VO, or, once filled, hands them again instead of computing them."""
     masks = {"none": None, "gt": list(gt_masks), "mona": "mona", "gt-detector": "mona"}[variant]
+    replay = mona is not None and mona.filled
+    if replay:
+        masks = list(mona.vo_masks)
     detector = None
     if variant == "gt-detector":
         from eval.mask_bench import TrueBoxDetector
@@ -72,6 +78,8 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
 
     def judge(out):
         # The masks `run` computed for these frames (full-frame pixels), against the truth.
+        if out.mona is not None and mona is not None:
+            mona.vo_masks.append(out.mask if out.mona.reliable else None)
         if out.mona is not None:
             gt_mask = gt_masks[out.index]
             quality["mask_j"].append(region_similarity(out.mask, gt_mask))
@@ -103,6 +111,13 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     summary = clip_summary(result, name=f"generated/{variant}", masks=variant, config=config,
                            calib_given=intrinsics is not None)
     verdict = clip_verdict(summary)
+    if mona is not None and not replay:
+        mona.filled = True
+        mona.quality = quality
+        mona.seconds = {k: v for k, v in result.timings.items() if k.startswith("masks.")}
+    if replay:   # the masks' quality and cost are those of the run that computed them
+        quality = mona.quality
+        result.timings.update(mona.seconds)
     vo_seconds = sum(v for k, v in result.timings.items() if k.startswith("vo."))
     mask_seconds = sum(v for k, v in result.timings.items() if k.startswith("masks."))
     true_fx = scene.intrinsics.fx
@@ -127,6 +142,29 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
         "support_p10": _nan_if_none(summary["support_p10"]),
         "usable": verdict.usable, "verdict": verdict.text(),
     }
+
+
+@dataclass
+class MonaReplay:
+    """MONA's masks of one sequence as its first run handed them to the VO (full-frame pixels;
+    None on a frame whose mask was not reliable), with their quality and cost. They depend on
+    the frames, the camera and the ``masks.*`` settings only, so draws that vary the VO's
+    settings alone (``--draws vo.grid_size=...``) get the same masks: computed once, handed
+    again as caller masks, the same trajectories at a fraction of the time
+    (tests/test_mask_temporal.py checks that a replayed run equals a computed one)."""
+
+    vo_masks: list = field(default_factory=list)
+    filled: bool = False
+    quality: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)
+
+
+def masks_reusable(draws, *, lens=None) -> bool:
+    """Whether MONA's masks can be computed once for all ``draws`` of a sequence: every draw
+    changes ``vo.*`` settings only, and no lens lies between the run's picture and the full
+    frame (its masks would come back through a resampling)."""
+    return bool(draws) and lens is None and all(
+        str(k).startswith("vo.") for d in draws for k in d)
 
 
 def _nan_if_none(v) -> float:
@@ -181,13 +219,15 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
                 masks = [masks[i] for i in (order if frame_repeats != "stutter" else range(len(order)))]
             coverage = float(np.mean([m.mean() for m in masks]))
             for variant in variants:
+                replay = MonaReplay() if variant == "mona" and repeats == 1 and \
+                    masks_reusable(draws, lens=lens) else None
                 for draw in draws or [{}]:
                     cfg = apply_overrides(config, draw) if draw else config
                     for repeat in range(repeats):
                         row = {"preset": preset, "seed": seed, "repeat": repeat,
                                "draw": draw_name(draw), "coverage": coverage,
                                **run_variant(scene, frames, masks, variant, cfg, calib, gt_poses,
-                                             camera)}
+                                             camera, mona=replay)}
                         rows.append(row)
                         if on_row is not None:
                             on_row(row)
@@ -493,7 +533,9 @@ def main(argv=None) -> int:
                     help="runs of each sequence, to measure the run-to-run spread (default 1)")
     ap.add_argument("--draws", action="append", default=[], metavar="KEY=V1,V2,...",
                     help="run every sequence and variant once per value (repeatable, as `mona-vo "
-                         "eval tum --draws`), and read each variant against 'none' over the draws")
+                         "eval tum --draws`), and read each variant against 'none' over the "
+                         "draws; when every key is a vo.* one, MONA's masks are computed in the "
+                         "first draw and handed to the others (the same trajectories)")
     args = ap.parse_args(argv)
     if args.compare:
         try:

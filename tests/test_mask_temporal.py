@@ -33,11 +33,21 @@ def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
     t = np.arange(len(scene), dtype=float)
     gt = Trajectory(t, scene.poses())
     true_masks = _gt_masks(folder, [f.name for f in open_frames(folder)])
+    # MONA's masks do not depend on the VO's settings: the first MONA run's masks, as it handed
+    # them to the VO, are handed again to the later ones (the same trajectories, a fifth of the
+    # time; eval.vo_bench.MonaReplay, checked in the test below).
+    handed = []
 
     def ate(masks, **sets):
         cfg = apply_overrides(PipelineConfig(), sets)
+        keep = None
+        if masks == "mona" and handed:
+            masks = list(handed)
+        elif masks == "mona":
+            def keep(out):
+                handed.append(out.mask if out.mona.reliable else None)
         result = estimate_trajectory(open_frames(folder), intrinsics=scene.intrinsics,
-                                     masks=masks, config=cfg)
+                                     masks=masks, config=cfg, on_frame=keep)
         return evaluate_trajectory(gt, Trajectory(t, result.vo.poses)).ate
 
     assert ate("mona", **{"vo.refine": "none"}) < 0.6 * ate(None, **{"vo.refine": "none"})
@@ -72,6 +82,26 @@ def test_mona_masks_lower_the_ate_over_scenes_and_draws():
     assert mona["sequences"] == 5 and all(s["draws"] == 3 for s in per_seq), per_seq
     assert mona["gmean_median_ratio"] < 0.8, per_seq
     assert max(s["median_ratio"] for s in per_seq) < 1.2, per_seq
+
+
+def test_draws_of_the_vo_alone_get_the_masks_of_the_first_draw_and_the_same_trajectories():
+    """`vo_bench --draws vo.*` computes MONA's masks once per sequence and hands them to the
+    other draws: each draw's trajectory and counters must equal those of a run that computes
+    its own masks, and the masks' quality and cost are reported from the run that did."""
+    import eval.vo_bench as vb
+
+    kw = dict(n_frames=16, width=384, height=164)
+    draws = [{"vo.grid_size": g} for g in ("14", "16")]
+    assert vb.masks_reusable(draws) and not vb.masks_reusable([{"masks.window": "7"}])
+    assert not vb.masks_reusable(draws, lens=object()) and not vb.masks_reusable(None)
+    reused = vb.benchmark(("one-large",), [0], ("mona",), draws=draws, **kw)
+    own = vb.benchmark(("one-large",), [0], ("mona",), draws=draws[1:], **kw)
+    assert [r["draw"] for r in reused] == ["vo.grid_size=14", "vo.grid_size=16"]
+    replayed, computed = reused[1], own[0]
+    for key in ("ate", "rpe_rot_deg", "keyframes", "dropped", "mask_j", "mask_fp_pct"):
+        assert replayed[key] == computed[key], key
+    assert replayed["mask_j"] > 0.3                       # a mask was found and scored
+    assert replayed["mask_ms_per_frame"] == reused[0]["mask_ms_per_frame"] > 0
 
 
 def test_a_movers_mask_is_stable_from_frame_to_frame(small_scene):
