@@ -132,13 +132,16 @@ def test_picture_too_large_for_lossless_png_is_written_with_a_palette_under_the_
 # Bonn crowd frames 0-224 (a slow pan of a static office with a little translation) without masks,
 # `vo.grid_size=15`: with the fixed 0.3 deg ray angle the map starved (PnP inliers median 66,
 # ATE 5.1 cm over the 0.69 m path); taking new landmarks at 0.1 deg while it is short of them,
-# 186 inliers and 1.25 cm (measured on this host, stop 48).
+# 186 inliers and 1.25 cm (measured on stop 48's host). The test runs the first 150 frames, where
+# the start is slow, in two thirds of the time: 67 inliers and 4.03 cm against 166 and 0.58 cm
+# (stop 50's host).
+SLOW_START_FRAMES = 150
 SLOW_START_MAX_ATE_M = 0.025
 
 
 def _bonn_slow_start(exe, root, out, *extra):
     proc = cli(exe, "run", root / "rgb", "--calib", root / "calib.txt", "--masks", "none",
-               "--max-frames", 225, "--out", out, "--set", "vo.grid_size=15", *extra)
+               "--max-frames", SLOW_START_FRAMES, "--out", out, "--set", "vo.grid_size=15", *extra)
     assert proc.returncode == 0, proc.stderr
     ev = cli(exe, "eval", "traj", "--gt", root / "groundtruth.txt", "--est", out / "trajectory.txt",
              "--max-diff", 0.02)
