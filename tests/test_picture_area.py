@@ -212,7 +212,7 @@ def test_vo_bench_paints_the_bars_it_is_asked_for(monkeypatch):
     import eval.vo_bench as vb
 
     seen = []
-    monkeypatch.setattr(vb, "run_variant", lambda scene, frames, masks, variant, cfg, calib, *_:
+    monkeypatch.setattr(vb, "run_variant", lambda scene, frames, masks, variant, cfg, calib, *_, **__:
                         seen.append(frames[0].image.copy()) or {"variant": variant})
     vb.benchmark(["static"], [0], ["none"], n_frames=3, width=96, height=64, bars="letterbox")
     vb.benchmark(["static"], [0], ["none"], n_frames=3, width=96, height=64)
