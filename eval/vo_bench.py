@@ -79,7 +79,7 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     def judge(out):
         # The masks `run` computed for these frames (full-frame pixels), against the truth.
         if out.mona is not None and mona is not None:
-            mona.vo_masks.append(out.mask if out.mona.reliable else None)
+            mona.vo_masks.append(out.vo_mask)
         if out.mona is not None:
             gt_mask = gt_masks[out.index]
             quality["mask_j"].append(region_similarity(out.mask, gt_mask))

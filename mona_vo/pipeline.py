@@ -114,6 +114,12 @@ class FrameOutput:
     origin: tuple[int, int] = (0, 0)  # (x, y) of the picture MONA saw in this frame: its points
                                     # and boxes are in the picture's pixels (crop_bars)
 
+    @property
+    def vo_mask(self) -> np.ndarray | None:
+        """The mask the VO was handed, full-frame pixels: MONA's only when reliable
+        (MaskFrame.vo_mask), a caller's as given; None without one."""
+        return self.mask if self.mona is None or self.mona.reliable else None
+
 
 @dataclass
 class RunResult:

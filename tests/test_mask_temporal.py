@@ -45,7 +45,7 @@ def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
             masks = list(handed)
         elif masks == "mona":
             def keep(out):
-                handed.append(out.mask if out.mona.reliable else None)
+                handed.append(out.vo_mask)
         result = estimate_trajectory(open_frames(folder), intrinsics=scene.intrinsics,
                                      masks=masks, config=cfg, on_frame=keep)
         return evaluate_trajectory(gt, Trajectory(t, result.vo.poses)).ate
