@@ -95,7 +95,8 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     est = Trajectory(result.vo.timestamps, result.vo.poses)
     nan = float("nan")
     errors = {"ate": nan, "ate_pct": nan, "rpe_trans": nan, "rpe_rot_deg": nan, "path_m": 0.0,
-              "rot_rmse_deg": nan, "est_translation_extent": nan, "status": "ok"}
+              "heading_deg": nan, "rot_rmse_deg": nan, "est_translation_extent": nan,
+              "status": "ok"}
     try:
         m = score_trajectory(gt, est)
         if isinstance(m, RotationMetrics):
@@ -103,7 +104,8 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
                           est_translation_extent=m.est_translation_extent)
         else:
             errors.update(ate=m.ate, ate_pct=m.ate_percent_of_path, rpe_trans=m.rpe_trans,
-                          rpe_rot_deg=m.rpe_rot_deg, path_m=m.path_length)
+                          rpe_rot_deg=m.rpe_rot_deg, path_m=m.path_length,
+                          heading_deg=m.heading_deg)
     except EvalError as exc:  # one sequence that cannot be scored must not end the benchmark
         errors["status"] = f"failed: {exc}"
     n = len(frames)
@@ -369,7 +371,9 @@ def format_verdict_quality(q: dict) -> str:
 def format_row(r: dict) -> str:
     return (f"{r['preset']:13s} seed {r['seed']:2d} {r['variant']:11s} cov {100 * r['coverage']:5.1f}%  "
             f"ATE {r['ate']:.4f} m {r['ate_pct']:7.3f}% of {r['path_m']:5.2f} m  "
-            f"RPE {r['rpe_trans']:.4f} m {r['rpe_rot_deg']:.3f} deg  VO {r['vo_fps']:5.1f} fps  "
+            f"RPE {r['rpe_trans']:.4f} m {r['rpe_rot_deg']:.3f} deg  "
+            + (f"heading {r['heading_deg']:5.1f} deg  " if np.isfinite(r.get("heading_deg", float("nan"))) else "")
+            + f"VO {r['vo_fps']:5.1f} fps  "
             f"masks {r['mask_ms_per_frame']:5.1f} ms/frame  low-conf {r['low_confidence']}"
             + (f"  focal {r['focal_error_pct']:+.1f}% -> {r['final_focal_error_pct']:+.1f}%"
                if r.get("calib") == "estimate" else "")

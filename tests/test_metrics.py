@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from eval.metrics import (Alignment, Trajectory, TrajectoryMetrics, evaluate_trajectory, path_length,
-                          window_scales)
+from eval.metrics import (Alignment, Trajectory, TrajectoryMetrics, evaluate_trajectory,
+                          heading_errors_deg, path_length, window_scales)
 from mona_vo.conventions import make_pose, pose_from_tum_row
 from mona_vo.errors import EvalError
 
@@ -196,6 +196,31 @@ def test_sim3_transformed_gt_gives_zero_ate_and_inverse_scale():
     assert got.scale == pytest.approx(1.0 / s, rel=1e-9)
     # SE(3) cannot undo the scale: a clearly non-zero error remains.
     assert evaluate_trajectory(gt, est, align="se3").ate > 0.1
+
+
+def test_heading_needs_no_alignment_and_finds_a_wrong_direction_that_the_ate_hides():
+    # A slow sideways drift while the camera pans (as generated mixed 207): the true camera
+    # moves along -x of its own axes, a wrong one along +x with the same rotations. The path is
+    # nearly a line, so a Sim(3) alignment turns the wrong one onto it: a small ATE.
+    n = 40
+    yaw = np.radians(0.33) * np.arange(n)
+    R = Rotation.from_euler("y", yaw[:, None]).as_matrix()
+    c = np.cumsum([Ri @ np.array([-0.01, 0.0, 0.004]) for Ri in R], axis=0)
+    gt = Trajectory(np.arange(n, dtype=float), np.stack([make_pose(Ri, ci) for Ri, ci in zip(R, c)]))
+    wrong_c = np.cumsum([Ri @ np.array([0.01, 0.0, 0.004]) for Ri in R], axis=0)
+    wrong = Trajectory(gt.timestamps, np.stack([make_pose(Ri, ci) for Ri, ci in zip(R, wrong_c)]))
+    m = evaluate_trajectory(gt, wrong)
+    assert m.ate_percent_of_path < 2.0 and m.heading_deg > 130.0
+    # Any similarity transform of the true path, scale included, keeps every heading at zero.
+    Rs = Rotation.from_euler("xyz", [20, -35, 70], degrees=True).as_matrix()
+    same = _apply_sim3(gt, Rs, np.array([3.0, -1.0, 0.5]), 0.37)
+    assert np.allclose(heading_errors_deg(gt.poses_T_world_cam, same.poses_T_world_cam), 0.0, atol=1e-6)
+    assert evaluate_trajectory(gt, same).heading_deg == pytest.approx(0.0, abs=1e-6)
+    # A step where either camera did not move has no direction.
+    still = same.poses_T_world_cam.copy()
+    still[5, :3, 3] = still[4, :3, 3]
+    h = heading_errors_deg(gt.poses_T_world_cam, still)
+    assert np.isnan(h[4]) and np.isfinite(np.delete(h, 4)).all()
 
 
 def _with_constant_relative_error(gt: Trajectory, delta: np.ndarray) -> Trajectory:
