@@ -54,7 +54,7 @@ VARIANTS = {
 MIN_POSED_FRACTION = 0.8
 MIN_MATCHED_FRACTION = 0.9   # fewer posed frames matched to GT than this: a warning on the row
 COLUMNS = ("sequence", "variant", "status", "ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path",
-           "heading_deg", "rot_rmse_deg", "rot_max_deg", "est_translation_extent",
+           "rot_rmse_deg", "rot_max_deg", "est_translation_extent",
            "frames", "frames_with_pose", "low_confidence", "n_matched", "scale", "seconds",
            "frames_per_second", "camera", "focal_px", "global_shift_pct", "support_p10", "usable",
            "warning")
@@ -142,8 +142,7 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
             row.update(m.to_dict())
         else:
             row.update({k: v for k, v in m.to_dict().items()
-                        if k in ("ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path", "heading_deg",
-                                 "n_matched", "scale")})
+                        if k in ("ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path", "n_matched", "scale")})
             if m.n_matched < MIN_MATCHED_FRACTION * posed.sum():
                 # evo's RPE pairs consecutive *matched* poses: across unmatched runs a "1-frame"
                 # pair spans many frames and can dominate the RPE.

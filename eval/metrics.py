@@ -19,7 +19,9 @@ ParticleSfM's scripts) and converts mona-vo's arrays to evo's objects and back:
   GT's per run of N matched steps, which places a monocular scale collapse in time;
 - heading (mona-vo's, not evo's): the median over matched steps of the angle between the
   estimated and the true direction of travel, each in its own camera's axes at the step's start
-  (:func:`heading_errors_deg`). It needs no alignment and no scale. ATE can hide a wrong
+  (:func:`heading_errors_deg`). It needs no alignment and no scale, but it needs GT poses in
+  the camera's own axes (generated scenes, Sintel, KITTI; not Bonn's, whose GT is a motion-
+  capture marker's frame turned about 178 deg from the camera's). ATE can hide a wrong
   direction: on a short, nearly straight path a Sim(3) alignment turns a camera that went the
   wrong way onto the true line (generated slow pan, mixed 207: 0.81 % of path with its
   translation 133 deg off).

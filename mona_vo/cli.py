@@ -498,7 +498,7 @@ def _cmd_eval_traj(args) -> int:
                                 scale_window=args.scale_window)
     d = m.to_dict()
     keys = ("ate", "rpe_trans", "rpe_rot_deg", "n_matched", "scale", "path_length",
-            "ate_percent_of_path", "alignment", "window_scales")
+            "ate_percent_of_path", "alignment", "heading_deg", "window_scales")
     print(json.dumps({k: d[k] for k in keys if k in d}))
     return 0
 
