@@ -98,8 +98,9 @@ def test_draws_of_the_vo_alone_get_the_masks_of_the_first_draw_and_the_same_traj
     own = vb.benchmark(("one-large",), [0], ("mona",), draws=draws[1:], **kw)
     assert [r["draw"] for r in reused] == ["vo.grid_size=14", "vo.grid_size=16"]
     replayed, computed = reused[1], own[0]
-    for key in ("ate", "rpe_rot_deg", "keyframes", "dropped", "mask_j", "mask_fp_pct"):
+    for key in ("ate", "rpe_rot_deg", "heading_deg", "keyframes", "dropped", "mask_j", "mask_fp_pct"):
         assert replayed[key] == computed[key], key
+    assert replayed["heading_deg"] < 10.0                 # the camera went the way it did
     assert replayed["mask_j"] > 0.3                       # a mask was found and scored
     assert replayed["mask_ms_per_frame"] == reused[0]["mask_ms_per_frame"] > 0
 
