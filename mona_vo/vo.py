@@ -123,7 +123,9 @@ class VOConfig:
                                             # (fresh seeds 300-311, true masks: 300 1.27 -> 0.41,
                                             # 304 2.30 -> 0.22 % of path), Bonn crowd did not
                                             # (MONA mean of five draws 4.53 -> 4.87 cm, the clip
-                                            # without masks 9.1 -> 10.8 mm); README
+                                            # without masks 9.1 -> 10.8 mm; stop 51, nine MONA
+                                            # draws 2.88 -> 3.68 cm, while the generated wrong-way
+                                            # starts fell 3 -> 1 with true masks); README
     init_keyframes: int = setting(4, ge=2)  # keyframes of the first window (two-view pair included)
     keyframe_parallax_px: float = setting(12.0, gt=0)  # median rotation-free track motion since
                                             # the last keyframe, px
