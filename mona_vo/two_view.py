@@ -95,6 +95,16 @@ def judge_pose(T_a_b: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray, intr_a: 
     return RelativePose(T_a_b, inliers, par), cost
 
 
+def translation_angle_deg(T_a: np.ndarray, T_b: np.ndarray) -> float:
+    """Angle (degrees) between the translation directions of two relative poses (4, 4); 180
+    when either has none."""
+    ta, tb = np.asarray(T_a, np.float64)[:3, 3], np.asarray(T_b, np.float64)[:3, 3]
+    na, nb = np.linalg.norm(ta), np.linalg.norm(tb)
+    if na < 1e-12 or nb < 1e-12:
+        return 180.0
+    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(ta, tb)), ta @ tb)))
+
+
 def translation_spread_deg(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics,
                            intr_b: Intrinsics, *, splits: int = 3, seed: int = 0) -> float:
     """How well matched pixels determine the direction of the translation between two views:
@@ -116,8 +126,7 @@ def translation_spread_deg(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrins
         if any(r is None for r in halves):
             angles.append(180.0)
             continue
-        ta, tb = (r.T_a_b[:3, 3] / max(np.linalg.norm(r.T_a_b[:3, 3]), 1e-12) for r in halves)
-        angles.append(float(np.degrees(np.arccos(np.clip(ta @ tb, -1.0, 1.0)))))
+        angles.append(translation_angle_deg(halves[0].T_a_b, halves[1].T_a_b))
     return float(np.median(angles))
 
 
