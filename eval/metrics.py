@@ -217,15 +217,13 @@ def heading_errors_deg(gt_T: np.ndarray, est_T: np.ndarray, min_step: float = 1e
     own camera at i: ``R_i^T (c_{i+1} - c_i)``. A similarity transform of either world leaves it
     unchanged, so it needs no alignment. NaN where either step is shorter than ``min_step`` (its
     own units): a camera that did not move has no direction."""
+    from mona_vo.geometry import angle_between_deg
+
     def directions(T):
         T = np.asarray(T, np.float64)
         d = np.einsum("nji,nj->ni", T[:-1, :3, :3], T[1:, :3, 3] - T[:-1, :3, 3])
-        n = np.linalg.norm(d, axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where((n > min_step)[:, None], d / n[:, None], np.nan)
-    a, b = directions(gt_T), directions(est_T)
-    # atan2 of sine and cosine: exact near 0 and 180 deg, where arccos of a dot product is not.
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1)))
+        return np.where((np.linalg.norm(d, axis=1) > min_step)[:, None], d, np.nan)
+    return angle_between_deg(directions(gt_T), directions(est_T))
 
 
 def _to_evo(traj: Trajectory, name: str):

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from mona_vo.errors import EvalError
+from mona_vo.geometry import angle_between_deg
 
 
 @dataclass(frozen=True)
@@ -52,10 +53,9 @@ def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
 def direction_error_deg(t_est: np.ndarray, t_gt: np.ndarray) -> float:
     """Angle in degrees between two 3-vectors (scale-free); EvalError for a zero vector."""
     a, b = np.asarray(t_est, float).ravel(), np.asarray(t_gt, float).ravel()
-    na, nb = np.linalg.norm(a), np.linalg.norm(b)
-    if na == 0 or nb == 0:
+    if np.linalg.norm(a) == 0 or np.linalg.norm(b) == 0:
         raise EvalError("translation direction undefined for a zero translation")
-    return float(np.degrees(np.arccos(np.clip(a @ b / (na * nb), -1.0, 1.0))))
+    return float(angle_between_deg(a, b))
 
 
 def track_grid(image0: np.ndarray, image1: np.ndarray, *, grid_size: int | None = None,

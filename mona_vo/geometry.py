@@ -53,6 +53,17 @@ def find_essential(pts_a: np.ndarray, pts_b: np.ndarray, K: np.ndarray, threshol
     return E[:3], inl.ravel() > 0
 
 
+def angle_between_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle in degrees between 3-vectors a and b ((3,) or (N, 3), either may be broadcast),
+    whatever their lengths; NaN where either is zero or not finite. atan2 of the sine and the
+    cosine: exact near 0 and 180 deg, where arccos of a normalised dot product is not."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    sine = np.linalg.norm(np.cross(a, b), axis=-1)
+    cosine = np.sum(a * b, axis=-1)
+    zero = (np.linalg.norm(a, axis=-1) == 0) | (np.linalg.norm(b, axis=-1) == 0)
+    return np.where(zero, np.nan, np.degrees(np.arctan2(sine, cosine)))
+
+
 def homogeneous(p: np.ndarray) -> np.ndarray:
     """(N, 3) float64 homogeneous coordinates [x, y, 1] of (N, 2) pixels."""
     p = np.asarray(p, np.float64).reshape(-1, 2)

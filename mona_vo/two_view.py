@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from mona_vo.conventions import Intrinsics, invert_pose, make_pose, reproject
-from mona_vo.geometry import find_essential, sampson_residuals
+from mona_vo.geometry import angle_between_deg, find_essential, sampson_residuals
 
 
 def normalize(pixels: np.ndarray, intr: Intrinsics) -> np.ndarray:
@@ -98,11 +98,8 @@ def judge_pose(T_a_b: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray, intr_a: 
 def translation_angle_deg(T_a: np.ndarray, T_b: np.ndarray) -> float:
     """Angle (degrees) between the translation directions of two relative poses (4, 4); 180
     when either has none."""
-    ta, tb = np.asarray(T_a, np.float64)[:3, 3], np.asarray(T_b, np.float64)[:3, 3]
-    na, nb = np.linalg.norm(ta), np.linalg.norm(tb)
-    if na < 1e-12 or nb < 1e-12:
-        return 180.0
-    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(ta, tb)), ta @ tb)))
+    angle = float(angle_between_deg(np.asarray(T_a)[:3, 3], np.asarray(T_b)[:3, 3]))
+    return 180.0 if np.isnan(angle) else angle
 
 
 def translation_spread_deg(pts_a: np.ndarray, pts_b: np.ndarray, intr_a: Intrinsics,
