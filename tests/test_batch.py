@@ -28,6 +28,14 @@ from mona_vo.errors import ConfigError, InputError
 # per run, not one per worker competing for the same two cores.
 pytestmark = pytest.mark.xdist_group("ray")
 
+
+def test_the_ray_tests_share_one_worker(request):
+    """The grouping above holds (on pytest 9.2 through tests/conftest.py's shim): split over the
+    workers, two clusters and two first batches competed for the same two cores."""
+    if not getattr(request.config.option, "loadgroup", False):
+        pytest.skip("not run under pytest-xdist's --dist loadgroup")
+    assert request.node.nodeid.endswith("@ray"), request.node.nodeid
+
 CHROMIUM = Path("/usr/bin/chromium")
 N_LONG = 24       # frames of the clip whose worker is killed
 N_SHORT = 12      # frames of the other clips
