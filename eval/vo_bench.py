@@ -48,11 +48,17 @@ def render_sequence(preset: str, seed: int, n_frames: int, width: int, height: i
     JPEG), the same geometry, so what the effects cost can be read apart."""
     scene = SyntheticScene(SceneConfig(width=width, height=height, n_frames=n_frames,
                                        preset=preset, seed=seed, effects=effects))
+    return (scene, *frames_of(scene))
+
+
+def frames_of(rendered) -> tuple[list[Frame], list[np.ndarray]]:
+    """The frames (named by their index) and true masks of rendered generated frames (an
+    iterable of RenderedFrame)."""
     frames, masks = [], []
-    for r in scene:
+    for r in rendered:
         frames.append(Frame(r.index, float(r.index), f"{r.index:05d}", r.image))
         masks.append(r.mask)
-    return scene, frames, masks
+    return frames, masks
 
 
 def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,

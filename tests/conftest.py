@@ -39,6 +39,65 @@ def small_scene(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def render(tmp_path_factory):
+    """``render(SceneConfig(...))`` -> (scene, frames): the scene and its list of
+    RenderedFrame, each sequence rendered once per test run and shared by the pytest-xdist
+    workers through a file (the generator is deterministic from its config; a 640 x 272 'mixed'
+    or 'creep' sequence of 40 frames takes 7-10 s to render, more than the VO runs on it, and
+    several tests read the same ones)."""
+    import copy
+    import fcntl
+    import hashlib
+    import os
+    import pickle
+
+    from data_tools.synthetic import SyntheticScene
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent                  # the run's folder, above each worker's own
+    folder = base / "rendered"
+    folder.mkdir(exist_ok=True)
+    memo: dict[str, list] = {}
+
+    def get(config):
+        key = hashlib.sha1(repr(config).encode()).hexdigest()[:20]
+        scene = SyntheticScene(config)
+        if key not in memo:
+            path = folder / f"{key}.pkl"
+            with open(folder / f"{key}.lock", "w") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)        # one worker renders, the other waits
+                if path.exists():
+                    frames = pickle.loads(path.read_bytes())
+                else:
+                    frames = list(scene)
+                    tmp = path.with_suffix(".tmp")
+                    tmp.write_bytes(pickle.dumps(frames, protocol=pickle.HIGHEST_PROTOCOL))
+                    tmp.replace(path)
+            if len(memo) >= 4:                          # a few sequences per worker in memory
+                memo.pop(next(iter(memo)))
+            memo[key] = frames
+        return scene, copy.deepcopy(memo[key])   # a test that paints on its frames paints alone
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def sequence(render):
+    """``sequence(preset, seed, n_frames, width, height)`` -> what eval.vo_bench.render_sequence
+    gives (scene, frames, true masks), through :func:`render`."""
+    from data_tools.synthetic import SceneConfig
+    from eval.vo_bench import frames_of
+
+    def get(preset: str, seed: int, n_frames: int, width: int, height: int):
+        scene, frames = render(SceneConfig(width=width, height=height, n_frames=n_frames,
+                                             preset=preset, seed=seed))
+        return (scene, *frames_of(frames))
+
+    return get
+
+
+@pytest.fixture(scope="session")
 def mona_vo_exe():
     """The installed console script, so that tests drive the real entry point."""
     import sys

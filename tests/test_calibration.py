@@ -164,17 +164,16 @@ def test_vo_bench_without_calib_runs_as_mona_vo_run_does_and_reports_the_focal_e
     assert abs(est["focal_error_pct"]) < 5.0            # a pan: the rotation model finds it
 
 
-def test_without_intrinsics_the_vo_runs_again_from_the_refined_focal_length():
+def test_without_intrinsics_the_vo_runs_again_from_the_refined_focal_length(sequence):
     # A generated creep (tuning seed 0) whose first-frames focal estimate is 28 % long: the first
     # pass's global refinement moves it by more than calibration.second_pass_change, so frames
     # that can be read again (a list) get a second VO pass from the refined camera; an iterator
     # cannot be read again and keeps the first pass. Measured: focal +6.8 % -> -0.9 %, ATE
     # 0.125 -> 0.117 % of path (given the true camera: 0.109 %).
     from eval.metrics import Trajectory, evaluate_trajectory
-    from eval.vo_bench import render_sequence
     from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 
-    scene, frames, masks = render_sequence("creep", 0, 40, 640, 272)
+    scene, frames, masks = sequence("creep", 0, 40, 640, 272)
     gt = Trajectory(np.arange(len(frames), dtype=float), scene.poses())
     true_f = scene.intrinsics.fx
     twice = estimate_trajectory(frames, masks=list(masks), config=PipelineConfig())
@@ -233,16 +232,15 @@ def test_a_creep_on_a_focal_guess_too_long_starts_again_and_a_pan_does_not():
     assert np.allclose(still.vo.poses[:, :3, 3], 0.0)
 
 
-def test_a_second_pass_that_builds_no_map_keeps_the_first_pass():
+def test_a_second_pass_that_builds_no_map_keeps_the_first_pass(sequence):
     # Finished work is never lost: on the Bonn clip without calibration four MONA draws built a
     # map, the focal length moved more than 5 %, and the second pass, from it, built none and
     # replaced the first (stop 47). Here the second read gives the first frame over and over, on
     # which no VO can start a map: the first pass must stay, and the report says why.
-    from eval.vo_bench import render_sequence
     from mona_vo.pipeline import PipelineConfig, _second_pass, estimate_trajectory
     from data_tools.frames import Frame
 
-    scene, frames, masks = render_sequence("creep", 0, 40, 640, 272)
+    scene, frames, masks = sequence("creep", 0, 40, 640, 272)
     config = PipelineConfig()
     first = estimate_trajectory(iter(frames), masks=list(masks), config=config).vo
     assert first.parallax["map_built"]
@@ -255,14 +253,13 @@ def test_a_second_pass_that_builds_no_map_keeps_the_first_pass():
     assert kept.refine["second_pass"].startswith("no:") and "built no map" in kept.refine["second_pass"]
 
 
-def test_a_second_pass_that_cannot_read_the_frames_again_keeps_the_first_pass():
+def test_a_second_pass_that_cannot_read_the_frames_again_keeps_the_first_pass(sequence):
     # Finished work is never lost: the first pass is a complete result, so a frame that fails on
     # the second read leaves it in place, and the report says why.
-    from eval.vo_bench import render_sequence
     from mona_vo.errors import InputError
     from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 
-    scene, frames, masks = render_sequence("creep", 0, 40, 640, 272)
+    scene, frames, masks = sequence("creep", 0, 40, 640, 272)
 
     class Once:
         """Frames that can be iterated twice, the second time failing half-way."""

@@ -116,18 +116,17 @@ def test_a_pure_pan_is_concluded_rotation_only_with_its_evidence():
     assert max(err) < 0.1
 
 
-def test_fast_rotation_under_motion_blur_keeps_tracking_with_weak_texture_points():
+def test_fast_rotation_under_motion_blur_keeps_tracking_with_weak_texture_points(sequence):
     """Generated 'mixed' seed 3 (a tuning seed): low-texture walls, motion blur, 3-4.5 deg per
     frame and a walking camera. With the fixed point score (1e-4) tracking was lost after frame
     20 and the 18 frames after it got no map (12 % ATE; 5.3 % since lost frames carry the
     camera's velocity); the score relative to the frame's best keeps every frame tracked
     (5.0 %)."""
     from eval.metrics import Trajectory, evaluate_trajectory
-    from eval.vo_bench import render_sequence
     from mona_vo.pipeline import PipelineConfig, estimate_trajectory
     from mona_vo.config import apply_overrides
 
-    scene, frames, masks = render_sequence("mixed", 3, 40, 640, 272)
+    scene, frames, masks = sequence("mixed", 3, 40, 640, 272)
     gt = Trajectory(np.arange(40, dtype=float), scene.poses())
     out = {}
     for name, sets in (("relative", {}), ("fixed", {"vo.point_min_score": 1e-4})):
@@ -217,20 +216,19 @@ def _turn_error_deg(poses_est, poses_gt):
     return float(np.degrees(np.arccos(np.clip((np.trace(Re.T @ Rg) - 1) / 2, -1, 1))))
 
 
-def test_the_start_pair_refitted_on_many_matches_ends_a_slow_pans_rotation_bias():
+def test_the_start_pair_refitted_on_many_matches_ends_a_slow_pans_rotation_bias(sequence):
     """Generated 'mixed' seeds 207 and 208 (tuning), true masks and intrinsics. 207, a slow pan
     drifting sideways: its start pair from the VO's 92 tracks was 1.2 deg off, and the whole
     clip turned 2.1 deg short of the true 12.8; refitted on about 600 matches, 0.13 deg. 208, a
     hand-held walk whose start pair was right (0.02 deg): the many matches slid (LK across
     eleven frames of shake) and would have started it 1.5 deg off; the chi-square test keeps
     the pair it had."""
-    from eval.vo_bench import render_sequence
     from mona_vo.config import apply_overrides
     from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 
     err = {}
     for seed in (207, 208):
-        scene, frames, masks = render_sequence("mixed", seed, 40, 640, 272)
+        scene, frames, masks = sequence("mixed", seed, 40, 640, 272)
         for dense in (1000, 0):
             cfg = apply_overrides(PipelineConfig(), {"vo.init_dense_points": dense})
             res = estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=list(masks),
@@ -267,14 +265,13 @@ def test_a_map_is_not_started_on_a_pair_whose_translation_is_undetermined():
     assert ate[45.0] < 0.2 * ate[180.0]
 
 
-def test_global_refinement_poses_tracked_frames_again_on_the_refined_map(monkeypatch):
+def test_global_refinement_poses_tracked_frames_again_on_the_refined_map(monkeypatch, render):
     # A slow creep (generator tuning seed 0): frames that only followed their keyframe kept the
     # pose PnP found on the window's map, errors and all; posed again on the refined map they
     # are nearer the truth (measured 0.41 -> 0.18 % of path).
     from eval.metrics import Trajectory, evaluate_trajectory
 
-    scene = SyntheticScene(SceneConfig(width=640, height=272, n_frames=40, preset="creep", seed=0))
-    rendered = list(scene)
+    scene, rendered = render(SceneConfig(width=640, height=272, n_frames=40, preset="creep", seed=0))
     images, masks = [r.image for r in rendered], [r.mask for r in rendered]
     t = np.arange(len(images), dtype=float)
     gt = Trajectory(t, scene.poses())
@@ -287,15 +284,14 @@ def test_global_refinement_poses_tracked_frames_again_on_the_refined_map(monkeyp
     assert ate < 0.7 * ate_follow, (ate, ate_follow)
 
 
-def test_without_intrinsics_the_global_refinement_corrects_a_wrong_focal_length():
+def test_without_intrinsics_the_global_refinement_corrects_a_wrong_focal_length(render):
     # A slow creep (generator tuning seed 0) started from a focal length 28 % too long, as the
     # estimate from the first frames gives on it: freed in the global refinement (Cal3f), the
     # focal length comes back near the truth and the trajectory with it (measured: +28 -> +6.9 %,
     # 0.45 -> 0.13 % of path). Intrinsics given per frame are never changed.
     from eval.metrics import Trajectory, evaluate_trajectory
 
-    scene = SyntheticScene(SceneConfig(width=640, height=272, n_frames=40, preset="creep", seed=0))
-    rendered = list(scene)
+    scene, rendered = render(SceneConfig(width=640, height=272, n_frames=40, preset="creep", seed=0))
     K = scene.intrinsics
     wrong = Intrinsics(1.28 * K.fx, 1.28 * K.fy, 319.5, 135.5)
     t = np.arange(len(rendered), dtype=float)
@@ -317,7 +313,7 @@ def test_without_intrinsics_the_global_refinement_corrects_a_wrong_focal_length(
     assert given.focal == pytest.approx(wrong.fx)
 
 
-def test_tracks_sliding_along_depth_edges_are_dropped_and_the_trajectory_gains(monkeypatch):
+def test_tracks_sliding_along_depth_edges_are_dropped_and_the_trajectory_gains(monkeypatch, render):
     # A generated slow pan (mixed seed 207, a seed outside the validation seeds 100-111): corners
     # where a near edge crosses the far background track well but are no points of the scene.
     # The keyframe dissimilarity check drops them -- several times more often than the other
@@ -326,8 +322,7 @@ def test_tracks_sliding_along_depth_edges_are_dropped_and_the_trajectory_gains(m
     # more far points and the check's gain shrinks to 0.92 -> 0.81 %; the scenario is the check's.
     from eval.metrics import Trajectory, evaluate_trajectory
 
-    scene = SyntheticScene(SceneConfig(width=640, height=272, n_frames=40, preset="mixed", seed=207))
-    rendered = list(scene)
+    scene, rendered = render(SceneConfig(width=640, height=272, n_frames=40, preset="mixed", seed=207))
     t = np.arange(len(rendered), dtype=float)
     gt = Trajectory(t, scene.poses())
 
@@ -372,7 +367,7 @@ def test_the_start_pair_check_drops_tracks_sliding_along_depth_edges():
     from eval.metrics import heading_errors_deg
 
     scene = SyntheticScene(SceneConfig(width=640, height=272, n_frames=40, preset="mixed", seed=2))
-    rendered = list(scene)[:16]
+    rendered = [scene.render(i) for i in range(16)]       # each frame alone: list(scene)[:16]
     G = scene.poses()[:16]
 
     def direction_error(poses):
@@ -471,7 +466,7 @@ def test_the_drift_test_drops_tracks_that_leave_their_static_point_and_lowers_th
     assert ate_on < 0.7 * ate_off, (ate_on, ate_off)
 
 
-def test_the_global_refinement_moves_a_wrong_map_much_and_a_good_one_little():
+def test_the_global_refinement_moves_a_wrong_map_much_and_a_good_one_little(render):
     """The verdict's self-check, without ground truth: on a fast turn whose scale slid (mixed
     seed 3, 4.5 deg per frame, motion blur) the global refinement moves the keyframes by
     several % of their path and the poses rested on few points, so `batch` calls the clip not
@@ -482,8 +477,7 @@ def test_the_global_refinement_moves_a_wrong_map_much_and_a_good_one_little():
 
     out = {}
     for seed in (3, 1):
-        scene = SyntheticScene(SceneConfig(width=640, height=272, n_frames=40, preset="mixed", seed=seed))
-        rendered = list(scene)
+        scene, rendered = render(SceneConfig(width=640, height=272, n_frames=40, preset="mixed", seed=seed))
         _, res = _run(scene, [r.image for r in rendered], [r.mask for r in rendered])
         ate = score_trajectory(Trajectory(np.arange(40.0), scene.poses()),
                                Trajectory(res.timestamps, res.poses)).ate_percent_of_path
@@ -498,7 +492,7 @@ def test_the_global_refinement_moves_a_wrong_map_much_and_a_good_one_little():
     assert ate < 0.2 and s["global_shift_pct"] < 0.25 and s["support_p10"] > 100 and v.usable
 
 
-def test_tracks_held_to_their_first_look_do_not_drift_and_the_trajectory_gains(monkeypatch):
+def test_tracks_held_to_their_first_look_do_not_drift_and_the_trajectory_gains(monkeypatch, render):
     # A generated static scene (static seed 0, a tuning seed), true intrinsics. Frame-to-frame
     # Lucas-Kanade drifts (about 0.02 px per frame here); with vo.anchor_tracks (an option, off)
     # the VO fits every track's patch at each keyframe as first anchored (mona_vo.patch_align)
@@ -508,8 +502,7 @@ def test_tracks_held_to_their_first_look_do_not_drift_and_the_trajectory_gains(m
     # their anchor: median error 0.210 -> 0.067 px; ATE 0.086 -> 0.045 % of path.
     from eval.metrics import Trajectory, evaluate_trajectory
 
-    scene = SyntheticScene(SceneConfig(width=640, height=272, n_frames=40, preset="static", seed=0))
-    rendered = list(scene)
+    scene, rendered = render(SceneConfig(width=640, height=272, n_frames=40, preset="static", seed=0))
     images = [r.image for r in rendered]
     G = scene.poses()
     K = scene.intrinsics.K
@@ -674,20 +667,19 @@ def test_the_window_holds_its_landmarks_views_from_the_keyframes_before_it_fixed
     assert all(set(p.poses) == set(w) for p, _, w in problems)
 
 
-def test_the_accurate_preset_lowers_the_error_on_static_scenes():
+def test_the_accurate_preset_lowers_the_error_on_static_scenes(sequence):
     """`--preset accurate` (24 x 24 new points once a map exists, 16 x 16 at the start) against
     the default (16 x 16) on generated static scenes, true intrinsics, global refinement:
     measured 0.069 -> 0.055 and 0.031 -> 0.018 % of path on seeds 0 and 1 (README, Point
     density and the presets; the full 24 x 24 grid, start included, 0.051 and 0.011)."""
     from eval.metrics import Trajectory, evaluate_trajectory
-    from eval.vo_bench import render_sequence
     from mona_vo.config import apply_overrides
     from mona_vo.pipeline import PipelineConfig, estimate_trajectory
     from mona_vo.presets import PRESETS
 
     ratios = []
     for seed in (0, 1):
-        scene, frames, masks = render_sequence("static", seed, 40, 640, 272)
+        scene, frames, masks = sequence("static", seed, 40, 640, 272)
         gt = Trajectory(np.arange(40, dtype=float), scene.poses())
         ate = {}
         for name in ("default", "accurate"):
