@@ -157,3 +157,32 @@ def test_a_slow_real_start_keeps_its_map_fed_with_landmarks(mona_vo_exe, shared_
                                             "--set", "vo.triangulation_starved_angle_deg=0")
     assert ate < SLOW_START_MAX_ATE_M
     assert inliers > 1.5 * inliers_off and ate_off > 2 * ate     # the rule is what feeds it
+
+
+def test_the_trajectory_picture_draws_each_curve_in_its_colour_and_takes_any_length(tmp_path):
+    """trajectory.png (OpenCV since stop 52): the ground truth grey, the estimate blue, the start
+    green, low-confidence frames red, in both views; one frame, a camera that never moved and a
+    NaN pose still give a picture, written under its final name only."""
+    import cv2
+
+    from eval.plots import plot_trajectory
+
+    t = np.linspace(0.0, 1.0, 40)
+    gt = np.stack([np.sin(3 * t), 0.1 * t, t], axis=1)
+    est = gt + 0.01 * np.random.default_rng(0).standard_normal(gt.shape)
+    path = plot_trajectory(tmp_path / "t.png", est, gt, title="clip",
+                           low_confidence=np.arange(40) % 10 == 5)
+    image = cv2.imread(str(path))
+    assert image is not None and image.shape == (495, 1100, 3)
+    half = image.shape[1] // 2
+    for colour in ((128, 128, 128), (180, 119, 31), (44, 160, 44), (40, 39, 214)):
+        near = np.all(np.abs(image.astype(int) - colour) <= 12, axis=2)
+        assert near[:, :half].sum() > 20 and near[:, half:].sum() > 20, colour
+    def grey(im):
+        return int(np.all(np.abs(im.astype(int) - (128, 128, 128)) <= 12, axis=2).sum())
+
+    plain = cv2.imread(str(plot_trajectory(tmp_path / "p.png", est)))
+    assert grey(plain) < 0.2 * grey(image)            # without GT, only the text's antialiasing
+    for odd in (est[:1], np.zeros((5, 3)), np.vstack([est[:3], [[np.nan] * 3]])):
+        assert cv2.imread(str(plot_trajectory(tmp_path / "odd.png", odd))) is not None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["odd.png", "p.png", "t.png"]
