@@ -95,6 +95,21 @@ def judge_pose(T_a_b: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray, intr_a: 
     return RelativePose(T_a_b, inliers, par), cost
 
 
+def shared_inliers(T_a_b: np.ndarray, inliers: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray,
+                   intr_a: Intrinsics, intr_b: Intrinsics) -> float:
+    """The share of ``inliers`` (a bool mask over the matched pixels pts_a, pts_b, those of
+    another pose) that are also inliers of the pose T_a_b (:func:`judge_pose`); 0 when there are
+    none. A second fit of the same matches that explains the same points another way shares
+    nearly all of them; one that found a new consensus, such as a large mover's once the points
+    that held the first fit were dropped, shares fewer."""
+    inliers = np.asarray(inliers, bool)
+    n = int(inliers.sum())
+    if n == 0:
+        return 0.0
+    was, _ = judge_pose(T_a_b, pts_a, pts_b, intr_a, intr_b)
+    return float((was.inliers & inliers).sum()) / n
+
+
 def translation_angle_deg(T_a: np.ndarray, T_b: np.ndarray) -> float:
     """Angle (degrees) between the translation directions of two relative poses (4, 4); 180
     when either has none."""

@@ -51,8 +51,8 @@ from mona_vo.patch_align import Anchors, align_patches
 from mona_vo.point_selection import seed_points
 from mona_vo.tracking import LKTracker, Tracker, to_gray
 from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose, rotation_only,
-                              rotation_parallax_deg, translation_angle_deg, translation_spread_deg,
-                              triangulate)
+                              rotation_parallax_deg, shared_inliers, translation_angle_deg,
+                              translation_spread_deg, triangulate)
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissimilar_tracks,
                               drift_test, dynamic_test, estimate_pose, find_by_projection,
@@ -133,6 +133,10 @@ class VOConfig:
                                             # translation by at least this, degrees (0: always,
                                             # stop 23's option; Bonn's refits moved its start
                                             # 0.6-12 deg, the generated wrong-way starts 79-126)
+    init_dissimilar_min_shared: float = setting(0.0, ge=0, le=1)  # and only when at least this
+                                            # share of the refit's inliers were inliers of the
+                                            # start it replaces (two_view.shared_inliers; 0:
+                                            # the turn alone decides, stop 51's gate)
     init_keyframes: int = setting(4, ge=2)  # keyframes of the first window (two-view pair included)
     keyframe_parallax_px: float = setting(12.0, gt=0)  # median rotation-free track motion since
                                             # the last keyframe, px
@@ -667,11 +671,18 @@ class VisualOdometry:
             # it drops change the map, which a real clip then answers chaotically (Bonn's
             # draws lost at stop 51; their refits moved the start 0.6-12 deg, where the
             # generated wrong-way starts moved 79-126 deg).
+            # And, when asked, only a refit that explains the same points another way: at stop
+            # 52 the mended wrong-way starts kept 84-100 % of its inliers from the start it
+            # replaced, the refits that went the wrong way on a scene whose car was not masked
+            # 64-74 % (the car's points had joined the consensus).
             sel = self._dissimilar(att.gray, s0.uv[i0], k0.intr, gray, s.uv[i1], intr, R.T)
             if sel.any():
-                refit = self._refit_pair(rel, s0.uv[i0][~sel], s.uv[i1][~sel], k0.intr, intr)
+                kept0, kept = s0.uv[i0][~sel], s.uv[i1][~sel]
+                refit = self._refit_pair(rel, kept0, kept, k0.intr, intr)
                 if refit is not None and translation_angle_deg(rel.T_a_b, refit.T_a_b) >= \
-                        self.cfg.init_dissimilar_min_turn_deg:
+                        self.cfg.init_dissimilar_min_turn_deg and \
+                        shared_inliers(rel.T_a_b, refit.inliers, kept0, kept, k0.intr, intr) >= \
+                        self.cfg.init_dissimilar_min_shared:
                     obs = self._reject(obs, common[sel])
                     common, rel = common[~sel], refit
                 # else the pair starts as it is: the check may improve a start, never block

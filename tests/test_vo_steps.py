@@ -341,6 +341,26 @@ def test_judge_pose_prefers_the_true_pose_and_counts_its_inliers_as_relative_pos
     assert not judge_pose(fwd, pb, pa, INTR, INTR)[0].inliers.any()
 
 
+def test_shared_inliers_tells_the_same_points_explained_again_from_a_new_consensus():
+    """two_view.shared_inliers, the start pair check's second gate
+    (vo.init_dissimilar_min_shared): a refit of the static points shares its inliers with the
+    start; a pose that a large mover's points hold shares few of them."""
+    from mona_vo.two_view import judge_pose, shared_inliers
+
+    P = _points(300)
+    T = _pose(1.0, (0.3, 0.0, 0.1))
+    ua, ub = _see(np.eye(4), P, 0.2), _see(T, P, 0.2, seed=2)
+    car = _pose(-2.0, (-0.5, 0.0, 0.4))           # a third of the points move with a car
+    ub[:100] = _see(car, P[:100], 0.2, seed=4)
+    static, _ = judge_pose(T, ua, ub, INTR, INTR)
+    again, _ = judge_pose(_pose(1.02, (0.31, 0.0, 0.1)), ua, ub, INTR, INTR)
+    movers, _ = judge_pose(car, ua, ub, INTR, INTR)
+    assert static.inliers[100:].mean() > 0.9 and movers.inliers[:100].mean() > 0.9
+    assert shared_inliers(T, again.inliers, ua, ub, INTR, INTR) > 0.95
+    assert shared_inliers(T, movers.inliers, ua, ub, INTR, INTR) < 0.2
+    assert shared_inliers(T, np.zeros(len(ua), bool), ua, ub, INTR, INTR) == 0.0
+
+
 def test_dissimilar_tracks_flags_the_sliding_junction_relative_to_the_median():
     import cv2
 
