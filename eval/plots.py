@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from data_tools.atomic import atomic_path
+from data_tools.atomic import write_bytes_atomic
 from mona_vo.geometry import align_similarity
 
 _SIZE = (1100, 495)                      # width, height of the picture, px
@@ -139,6 +139,5 @@ def plot_trajectory(path: str | Path, est_xyz: np.ndarray, gt_xyz: np.ndarray | 
     if not ok:
         raise RuntimeError(f"could not encode {path}")
     path = Path(path)
-    with atomic_path(path) as tmp:
-        Path(tmp).write_bytes(data.tobytes())
+    write_bytes_atomic(path, data.tobytes())
     return path

@@ -681,8 +681,9 @@ class VisualOdometry:
                 refit = self._refit_pair(rel, kept0, kept, k0.intr, intr)
                 if refit is not None and translation_angle_deg(rel.T_a_b, refit.T_a_b) >= \
                         self.cfg.init_dissimilar_min_turn_deg and \
-                        shared_inliers(rel.T_a_b, refit.inliers, kept0, kept, k0.intr, intr) >= \
-                        self.cfg.init_dissimilar_min_shared:
+                        (self.cfg.init_dissimilar_min_shared <= 0 or
+                         shared_inliers(rel.T_a_b, refit.inliers, kept0, kept, k0.intr, intr) >=
+                         self.cfg.init_dissimilar_min_shared):
                     obs = self._reject(obs, common[sel])
                     common, rel = common[~sel], refit
                 # else the pair starts as it is: the check may improve a start, never block
