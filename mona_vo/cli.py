@@ -332,12 +332,16 @@ def _pipeline_config(args, *, speed_preset: bool = True):
 
 
 def _cmd_run(args) -> int:
-    from mona_vo.batch import clip_verdict, summary_from_report
-    from mona_vo.run import run
+    from mona_vo.inputs import open_inputs
 
-    report = run(args.input, args.out, calib=args.calib, masks=args.masks,
-                 config=_pipeline_config(args), overlay=args.overlay, stride=args.stride,
-                 max_frames=args.max_frames, progress=not args.quiet, gt_path=args.gt)
+    # The inputs first, before the pipeline is imported: a bad one fails in a third of a second.
+    inputs = open_inputs(args.input, calib=args.calib, masks=args.masks, stride=args.stride,
+                         max_frames=args.max_frames, gt_path=args.gt)
+    from mona_vo.batch import clip_verdict, summary_from_report
+    from mona_vo.run import run_opened
+
+    report = run_opened(inputs, args.out, config=_pipeline_config(args), overlay=args.overlay,
+                        progress=not args.quiet)
     fps = report["frames_per_second"].get("total")
     print(f"{report['frames']} frames, {report['keyframes']} keyframes, {fps:.1f} frames/s; "
           f"low-confidence frames: {len(report['low_confidence_frames'])}; wrote {args.out}/trajectory.txt")
@@ -347,10 +351,13 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_masks(args) -> int:
-    from mona_vo.run import masks_only
+    from mona_vo.inputs import open_inputs
 
-    report = masks_only(args.input, args.out, config=_pipeline_config(args), stride=args.stride,
-                        max_frames=args.max_frames, progress=not args.quiet)
+    inputs = open_inputs(args.input, masks=None, stride=args.stride, max_frames=args.max_frames)
+    from mona_vo.run import masks_only_opened
+
+    report = masks_only_opened(inputs, args.out, config=_pipeline_config(args),
+                               progress=not args.quiet)
     print(f"{report['frames']} masks, {report['frames_per_second']} frames/s, mean coverage "
           f"{100 * report['mean_mask_coverage']:.1f} %; wrote {args.out}/masks/")
     return 0

@@ -36,7 +36,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+# scipy.spatial is imported by the two functions that use it: it costs 0.4 s, more than the rest of
+# what the readers and writers import, and a command failing on a bad input should not pay it.
 
 
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -74,6 +76,8 @@ def is_rigid(T: np.ndarray, tol: float = 1e-6) -> bool:
 
 def quat_wxyz_from_rotation(R: np.ndarray) -> np.ndarray:
     """Unit quaternion (4,) float64 w, x, y, z with w >= 0 from a 3x3 rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
     x, y, z, w = Rotation.from_matrix(R).as_quat()
     q = np.array([w, x, y, z])
     return -q if q[0] < 0 else q
@@ -81,6 +85,8 @@ def quat_wxyz_from_rotation(R: np.ndarray) -> np.ndarray:
 
 def rotation_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
     """3x3 rotation from a quaternion w, x, y, z (normalised first; any non-zero norm is accepted)."""
+    from scipy.spatial.transform import Rotation
+
     w, x, y, z = np.asarray(q_wxyz, dtype=np.float64)
     return Rotation.from_quat([x, y, z, w]).as_matrix()
 

@@ -244,6 +244,21 @@ def build_segmenter(config: MaskConfig, device: str = "cpu", weights: str = "") 
                   device, config.segmenter_checkpoint or weights)
 
 
+def build_backends(config: MaskConfig, device: str = "cpu", weights: str = "", *,
+                   flow: Flow | None = None, tracker: Tracker | None = None,
+                   detector: Detector | None = None, segmenter: Segmenter | None = None) -> dict:
+    """MonaMasker's four back ends: those given as they are, the others built from ``config``
+    (the classical tracker ``lk`` when none is given). Neural ones find their checkpoints here,
+    so a caller that builds them before reading frames fails on a missing one at once."""
+    return {"flow": flow or _build(FLOWS, config.flow, config.dis if config.flow == "dis" else None,
+                                   device, config.flow_checkpoint or weights),
+            "tracker": tracker or build_tracker("lk"),
+            "detector": detector or _build(DETECTORS, config.detector,
+                                           config.motion if config.detector == "motion" else None,
+                                           device, config.detector_checkpoint or weights),
+            "segmenter": segmenter or build_segmenter(config, device, weights)}
+
+
 class MonaMasker:
     """Streaming MONA masks (module docstring).
 
@@ -263,13 +278,10 @@ class MonaMasker:
         self.config.validate()
         cfg = self.config
         self.intrinsics = intrinsics
-        self.flow = flow or _build(FLOWS, cfg.flow, cfg.dis if cfg.flow == "dis" else None,
-                                   device, cfg.flow_checkpoint or weights)
-        self.tracker = tracker or build_tracker("lk")
-        self.detector = detector or _build(DETECTORS, cfg.detector,
-                                           cfg.motion if cfg.detector == "motion" else None,
-                                           device, cfg.detector_checkpoint or weights)
-        self.segmenter = segmenter or build_segmenter(cfg, device, weights)
+        built = build_backends(cfg, device, weights, flow=flow, tracker=tracker, detector=detector,
+                               segmenter=segmenter)
+        self.flow, self.tracker = built["flow"], built["tracker"]
+        self.detector, self.segmenter = built["detector"], built["segmenter"]
         self._points = DynamicPointsTracker(cfg.dynamic_points, self.tracker)
         self._size: tuple[int, int] | None = None      # (W, H)
         self._n = 0                                     # frames pushed

@@ -96,9 +96,13 @@ class PipelineConfig:
 
         return build_tracker(self.tracker, self.device, self.tracker_checkpoint or self.weights)
 
-    def masker_backends(self) -> dict:
-        """Keyword arguments of :class:`mona_vo.masks.MonaMasker` from the shared keys."""
-        return {"tracker": self.build_tracker(), "device": self.device, "weights": self.weights}
+    def masker_backends(self, detector=None) -> dict:
+        """:class:`mona_vo.masks.MonaMasker`'s back ends, built from ``masks`` and the shared keys
+        (tracker, device, weights); ``detector``, when given, in place of the one it names."""
+        from mona_vo.masks import build_backends
+
+        return build_backends(self.masks, self.device, self.weights, tracker=self.build_tracker(),
+                              detector=detector)
 
 
 @dataclass
@@ -424,8 +428,9 @@ class _Recorder:
     """Takes each frame once its mask is known, in order: hands it to ``on_frame`` and to the VO
     (a repeat, :mod:`mona_vo.repeats`, only to ``on_frame``) and keeps what the result needs."""
 
-    def __init__(self, config: PipelineConfig, stream: Stream, on_frame, progress):
+    def __init__(self, config: PipelineConfig, stream: Stream, on_frame, progress, tracker):
         self.config, self.stream, self.on_frame, self.progress = config, stream, on_frame, progress
+        self.tracker = tracker              # the VO's, built before the stream was opened
         self.vo: VisualOdometry | None = None
         self.first_intr: Intrinsics | None = None
         self.size: tuple[int, int] | None = None        # (W, H) of the picture
@@ -472,7 +477,7 @@ class _Recorder:
             self.first_intr = intr or camera_without_calib(self.stream.calibration, self.config,
                                                            *self.size)
             self.vo = VisualOdometry(self.config.vo, self.size[0], self.size[1], self.first_intr,
-                                     tracker=self.config.build_tracker(),
+                                     tracker=self.tracker,
                                      camera_known=intr is not None, occluded=self.stream.overlay)
         self.vo.step(frame.image, timestamp=frame.timestamp, mask=vo_mask, intrinsics=intr)
         if self.may_rerun:
@@ -529,11 +534,15 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
     t_start = time.perf_counter()
     if isinstance(masks, str) and masks != "mona":
         raise ConfigError(f"masks must be 'mona', None, an iterable or a callable, not '{masks}'")
-    stream = open_stream(frames, intrinsics, config)
     use_mona = masks == "mona"
+    # The back ends are built before a frame is read, so that a missing checkpoint fails at
+    # once, not after the focal length was estimated from the first frames.
+    backends = config.masker_backends(detector) if use_mona else None
+    tracker = config.build_tracker()
+    stream = open_stream(frames, intrinsics, config)
     caller = _CallerMasks(masks, stream.cut, stream.lens) if masks is not None and not use_mona \
         else None
-    rec = _Recorder(config, stream, on_frame, progress)
+    rec = _Recorder(config, stream, on_frame, progress, tracker)
     repeats = RepeatDetector(config.repeat_max_diff)
     timings: dict[str, float] = {}
     masker = None
@@ -569,8 +578,7 @@ def estimate_trajectory(frames: Iterable, *, intrinsics=None, masks=None,
             # MONA's camera model uses the intrinsics when known, else the VO's camera.
             masker = MonaMasker(config.masks, _intrinsics_for(stream.intrinsics, frame, w, h)
                                 or camera_without_calib(stream.calibration, config, w, h),
-                                ignore=stream.overlay, detector=detector,
-                                **config.masker_backends())
+                                ignore=stream.overlay, **backends)
         pending.append((frame, repeat))
         drain(masker.push_repeat(frame.index) if repeat else masker.push(frame.index, frame.image))
     if masker is not None:

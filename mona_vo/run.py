@@ -14,7 +14,7 @@ import numpy as np
 from mona_vo import __version__
 from mona_vo.config import to_dict
 from mona_vo.conventions import Intrinsics
-from mona_vo.errors import InputError
+from mona_vo.inputs import RunInputs, open_inputs
 from mona_vo.pipeline import FrameOutput, PipelineConfig, estimate_trajectory
 
 
@@ -37,19 +37,6 @@ def _progress_bar(total: int | None, desc: str, enabled: bool):
     return bar, update
 
 
-def _mask_source(masks: str | None, source, width: int, height: int, *, subset: bool = False):
-    """'mona' | 'none' | None | folder path -> what estimate_trajectory takes. ``subset``: the run
-    uses some of the input's frames (stride, max_frames), so the folder may hold more masks."""
-    if masks in (None, "none"):
-        return None
-    if masks == "mona":
-        return "mona"
-    from data_tools.masks_io import read_mask_folder
-
-    folder = read_mask_folder(masks, source.names, (width, height), allow_extra=subset)
-    return iter(folder)
-
-
 def run(input_path: str | Path, out_dir: str | Path, *, calib: str | None = None,
         masks: str | None = "mona", config: PipelineConfig | None = None, overlay: bool = False,
         stride: int = 1, max_frames: int | None = None, progress: bool = True,
@@ -58,25 +45,27 @@ def run(input_path: str | Path, out_dir: str | Path, *, calib: str | None = None
     (also written to ``out_dir/report.json``). Also writes ``out_dir/index.html``, the page of
     :mod:`mona_vo.report_html` for this one video (``verdict``: a batch.VerdictConfig, None for
     the defaults; ``page_name``: the clip's name on it, default the input's name)."""
-    from data_tools.calibration import parse_calibration
-    from data_tools.frames import open_frames
+    # Everything the user gave is checked before the first frame is processed, so that a bad
+    # option fails in a second, not after the run (which would lose the run's work).
+    inputs = open_inputs(input_path, calib=calib, masks=masks, stride=stride,
+                         max_frames=max_frames, gt_path=gt_path)
+    return run_opened(inputs, out_dir, config=config, overlay=overlay, progress=progress,
+                      verdict=verdict, page_name=page_name)
+
+
+def run_opened(inputs: RunInputs, out_dir: str | Path, *, config: PipelineConfig | None = None,
+               overlay: bool = False, progress: bool = True, verdict=None,
+               page_name: str | None = None) -> dict:
+    """:func:`run` on inputs already opened by :func:`mona_vo.inputs.open_inputs` (the CLI opens
+    them before it loads the pipeline)."""
     from data_tools.run_outputs import RunOutputs
     from eval.plots import plot_trajectory
     from mona_vo.batch import run_page_files
     from mona_vo.report_html import ThumbnailStrip
 
     config = config or PipelineConfig()
-    # Everything the user gave is checked before the first frame is processed, so that a bad
-    # option fails in a second, not after the run (which would lose the run's work).
-    source = open_frames(input_path, stride=stride, max_frames=max_frames)
-    intr = parse_calibration(calib, source.width, source.height) if calib else None
-    mask_src = _mask_source(masks, source, source.width, source.height,
-                            subset=stride != 1 or max_frames is not None)
-    gt_poses = None
-    if gt_path is not None:
-        from data_tools.tum import read_tum_trajectory
-
-        _, gt_poses = read_tum_trajectory(gt_path)
+    input_path, source, masks = inputs.input_path, inputs.source, inputs.masks
+    intr, mask_src, gt_poses = inputs.intrinsics, inputs.mask_source, inputs.gt_poses
     overlay_writer = None
     with RunOutputs(out_dir, write_masks=masks not in (None, "none")) as outputs:
         if overlay:
@@ -238,14 +227,20 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
     ``out_dir/masks_report.json`` (staged like :func:`run`'s outputs, renamed into place at the end).
     The masks use the camera :func:`run` would use without ``--calib`` (the focal length estimated
     from the first frames, else the field-of-view guess), so they are the masks `run` computes."""
-    from data_tools.frames import open_frames
+    inputs = open_inputs(input_path, masks=None, stride=stride, max_frames=max_frames)
+    return masks_only_opened(inputs, out_dir, config=config, progress=progress)
+
+
+def masks_only_opened(inputs: RunInputs, out_dir: str | Path, *,
+                      config: PipelineConfig | None = None, progress: bool = True) -> dict:
+    """:func:`masks_only` on frames already opened by :func:`mona_vo.inputs.open_inputs`."""
     from data_tools.run_outputs import RunOutputs
     from mona_vo.masks import compute_masks
     from mona_vo.picture_area import PictureArea
     from mona_vo.pipeline import camera_without_calib, open_stream
 
     config = config or PipelineConfig()
-    source = open_frames(input_path, stride=stride, max_frames=max_frames)
+    input_path, source = inputs.input_path, inputs.source
     names = {}
     coverage = []
     repeated = {}
@@ -258,6 +253,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
     with RunOutputs(out_dir, write_masks=True) as outputs:
         bar, update = _progress_bar(len(source), "mona-vo masks", progress)
         t0 = time.perf_counter()
+        backends = config.masker_backends()       # before a frame is read (estimate_trajectory)
         try:
             stream = open_stream(source, None, config)
             area = stream.picture or PictureArea.whole(source.width, source.height)
@@ -266,7 +262,7 @@ def masks_only(input_path: str | Path, out_dir: str | Path, *, config: PipelineC
             for n, mf in enumerate(compute_masks(remember(stream.frames), config.masks, camera,
                                                  repeat_max_diff=config.repeat_max_diff,
                                                  ignore=stream.overlay,
-                                                 **config.masker_backends()), start=1):
+                                                 **backends), start=1):
                 mask = stream.full_mask(mf.mask)
                 outputs.add_mask(names[mf.index], mask)
                 if mf.repeat_of >= 0:

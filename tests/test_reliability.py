@@ -19,8 +19,10 @@ import re
 import shutil
 import signal
 import subprocess
+import sys
 import threading
 import time
+import types
 from pathlib import Path
 
 import cv2
@@ -499,6 +501,54 @@ def test_bad_input_fails_in_one_line_naming_the_file(case, bad_input_runs):
         assert out.read_text() == "not a folder\n"
     else:
         assert entries(out) == [], "a failed run left files behind"
+
+
+def test_a_bad_input_fails_before_the_pipeline_is_loaded(small_scene, tmp_path):
+    """`run` and `masks` open their inputs first: a missing path, a bad --calib or a masks folder
+    that does not match fails with GTSAM and SciPy's spatial module never imported (they cost a
+    failing command 1.5 s of its 2), and nothing is written."""
+    src, _ = small_scene
+    probe = ("import sys\n"
+             "from mona_vo.cli import main\n"
+             "code = main(sys.argv[1:])\n"
+             "print(code, 'gtsam' in sys.modules, 'scipy.spatial' in sys.modules, "
+             "'mona_vo.pipeline' in sys.modules)\n")
+    cases = [["run", tmp_path / "no_such_folder"],
+             ["run", src, "--calib", "0,500,192,82"],
+             ["run", src, "--masks", tmp_path / "no_masks_here"],
+             ["masks", tmp_path / "no_such_video.mp4"]]
+    for argv in cases:
+        proc = subprocess.run([sys.executable, "-c", probe, "-q", *map(str, argv),
+                               "--out", str(tmp_path / "out")], capture_output=True, text=True)
+        assert proc.stdout.split() == ["1", "False", "False", "False"], (argv, proc.stdout,
+                                                                      proc.stderr)
+        assert proc.stderr.startswith("mona-vo: error: ") and len(proc.stderr.splitlines()) == 1
+        assert not (tmp_path / "out").exists()
+
+
+def test_a_missing_checkpoint_fails_before_a_frame_is_read(tmp_path, monkeypatch):
+    """A neural back end named in the config whose checkpoint is not there fails before the
+    pipeline reads its first frame (not after the focal length was estimated from the first
+    frames): for each of MONA's back ends and for the VO's tracker."""
+    from mona_vo.config import apply_overrides
+    from mona_vo.errors import BackendError
+    from mona_vo.pipeline import PipelineConfig, estimate_trajectory
+
+    monkeypatch.setenv("MONA_VO_WEIGHTS", str(tmp_path))
+    read = []
+
+    def frames():
+        for i in range(3):
+            read.append(i)
+            yield types.SimpleNamespace(index=i, timestamp=float(i), name=f"{i:05d}",
+                                        image=np.zeros((H, W, 3), np.uint8))
+
+    for key, value, masks in (("masks.flow", "raft", "mona"), ("masks.detector", "yolo", "mona"),
+                              ("masks.segmenter", "sam", "mona"), ("tracker", "cotracker", None)):
+        config = apply_overrides(PipelineConfig(), {key: value})
+        with pytest.raises(BackendError, match="checkpoint"):
+            estimate_trajectory(frames(), masks=masks, config=config)
+        assert read == [], (key, read)
 
 
 # Sintel's binary files through their readers: wrong tag, short header, short payload, bad content.
