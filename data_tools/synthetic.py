@@ -1633,20 +1633,27 @@ class SyntheticScene:
         ray[..., 2] = 1.0
         X = ray * t[..., None]
         Ri, ci, Rj, cj = self._R_wc[i], self._centres[i], self._R_wc[j], self._centres[j]
-        flow = np.zeros((H, W, 2), dtype=np.float32)
-        for b in np.unique(box):
-            bx = self._boxes[b]
+        flow = np.zeros((H * W, 2), dtype=np.float32)
+        X = X.reshape(-1, 3)
+        # The pixels of each box in row-major order, from one stable sort (as _shade does; a
+        # comparison of the whole image per box took most of the time).
+        flat = box.ravel()
+        order = np.argsort(flat, kind="stable")
+        keys = flat[order]
+        cuts = np.flatnonzero(np.diff(keys)) + 1
+        for start, stop in zip(np.r_[0, cuts], np.r_[cuts, keys.size]):
+            idx = order[start:stop]
+            bx = self._boxes[keys[start]]
             Rrel = bx.R[j] @ bx.R[i].T
             A = Rj.T @ Rrel @ Ri
             off = Rj.T @ (Rrel @ (ci - bx.centre[i]) + bx.centre[j] - cj)
-            sel = box == b
-            Xp = X[sel] @ A.T + off
+            Xp = X[idx] @ A.T + off
             z = np.maximum(Xp[:, 2], 1e-3)
             u = intr.fx * Xp[:, 0] / z + intr.cx
             v = intr.fy * Xp[:, 1] / z + intr.cy
-            ys, xs = np.nonzero(sel)
-            flow[sel] = (sign * np.column_stack([u - xs, v - ys])).astype(np.float32)
-        return flow
+            ys, xs = np.divmod(idx, W)
+            flow[idx] = (sign * np.column_stack([u - xs, v - ys])).astype(np.float32)
+        return flow.reshape(H, W, 2)
 
     def _apply_effects(self, i: int, image: np.ndarray, t: np.ndarray, box: np.ndarray):
         """Frame i's image with the recipe's effects, in order: motion blur (the image averaged
