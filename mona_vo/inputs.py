@@ -6,9 +6,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from data_tools.frames import FrameSource
+    from mona_vo.conventions import Intrinsics
 
 
 @dataclass
@@ -17,12 +21,12 @@ class RunInputs:
     folder); ``mask_source`` is what the pipeline takes: None, 'mona' or an iterator over the
     folder's masks in frame order."""
 
-    input_path: str | Path         # as given (the report quotes it)
-    source: Any                    # data_tools.frames.FrameSource
-    intrinsics: Any                # Intrinsics or LensIntrinsics from --calib, or None
+    input_path: str | Path                          # as given (the report quotes it)
+    source: FrameSource
+    intrinsics: Intrinsics | None                   # from --calib (LensIntrinsics with distortion)
     masks: str | None
-    mask_source: Any
-    gt_poses: np.ndarray | None    # (N, 4, 4) camera-to-world, or None
+    mask_source: str | Iterator[np.ndarray] | None
+    gt_poses: np.ndarray | None                     # (N, 4, 4) camera-to-world, or None
 
 
 def open_inputs(input_path: str | Path, *, calib: str | None = None, masks: str | None = "mona",
