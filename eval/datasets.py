@@ -1,16 +1,43 @@
 """Dataset readers behind the evaluation harness: each turns a dataset folder into
-:class:`eval.harness.EvalSequence` objects. All file reading goes through data_tools."""
+:class:`EvalSequence` objects. All file reading goes through data_tools. Light on imports (no
+pipeline), so that `eval sintel` and `eval tum` check their folders before loading it."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Iterable
 
 from data_tools.masks_io import read_mask_folder
 from data_tools.sintel import SintelSequence, list_sequences as list_sintel
 from data_tools.tum import TumSequence
-from eval.harness import EvalSequence
 from eval.metrics import Trajectory
 from mona_vo.conventions import Intrinsics
 from mona_vo.errors import InputError
+
+
+@dataclass
+class EvalSequence:
+    """One sequence of a dataset, ready to run.
+
+    frames:     callable returning a fresh frame iterator (objects with index, timestamp, name,
+                image), so a sequence can be run once per variant.
+    n_frames:   number of frames.
+    intrinsics: one Intrinsics, a per-frame list, or None (the VO's guess).
+    gt:         ground-truth trajectory (timestamps in the same clock as the frames').
+    gt_masks:   callable returning an iterator of (H, W) bool masks aligned with the frames, or
+                None when the dataset has none.
+    max_diff:   timestamp association tolerance for the metrics, seconds (or frames).
+    """
+
+    name: str
+    frames: Callable[[], Iterable]
+    n_frames: int
+    intrinsics: object
+    gt: Trajectory
+    gt_masks: Callable[[], Iterable] | None = None
+    max_diff: float = 0.01
+    error: str | None = None     # a damaged file found up front: every run of it fails with this
+
 
 # The 14 sequences of the Sintel camera-trajectory protocol (LEAP-VO, ParticleSfM, MONA).
 SINTEL_SEQUENCES = ("alley_2", "ambush_4", "ambush_5", "ambush_6", "cave_2", "cave_4", "market_2",

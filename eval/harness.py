@@ -28,29 +28,23 @@ import io
 import json
 import time
 import traceback
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Iterable
 
 import numpy as np
 
 from data_tools.atomic import write_text_atomic
 from data_tools.run_outputs import sigint_deferred
 from data_tools.tum import read_tum_trajectory, write_tum_trajectory
+from eval.datasets import EvalSequence
 from eval.metrics import RotationMetrics, Trajectory, score_trajectory
+from eval.variants import VARIANTS, parse_variants, variant_config
 from mona_vo.batch import clip_verdict
 from mona_vo.config import apply_overrides, to_dict
 from mona_vo.errors import ConfigError, EvalError, MonaVoError
 from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 from mona_vo.run import clip_summary
 
-VARIANTS = {
-    "none": (None, {}),
-    "mona": ("mona", {"masks.prompt": "boxes"}),
-    "mona-points": ("mona", {"masks.prompt": "points"}),
-    "mona-raw-boxes": ("mona", {"masks.prompt": "raw-boxes"}),
-    "gt": ("gt", {}),
-}
 MIN_POSED_FRACTION = 0.8
 MIN_MATCHED_FRACTION = 0.9   # fewer posed frames matched to GT than this: a warning on the row
 COLUMNS = ("sequence", "variant", "status", "ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path",
@@ -58,43 +52,6 @@ COLUMNS = ("sequence", "variant", "status", "ate", "rpe_trans", "rpe_rot_deg", "
            "frames", "frames_with_pose", "low_confidence", "n_matched", "scale", "seconds",
            "frames_per_second", "camera", "focal_px", "global_shift_pct", "support_p10", "usable",
            "warning")
-
-
-@dataclass
-class EvalSequence:
-    """One sequence of a dataset, ready to run.
-
-    frames:     callable returning a fresh frame iterator (objects with index, timestamp, name,
-                image), so a sequence can be run once per variant.
-    n_frames:   number of frames.
-    intrinsics: one Intrinsics, a per-frame list, or None (the VO's guess).
-    gt:         ground-truth trajectory (timestamps in the same clock as the frames').
-    gt_masks:   callable returning an iterator of (H, W) bool masks aligned with the frames, or
-                None when the dataset has none.
-    max_diff:   timestamp association tolerance for the metrics, seconds (or frames).
-    """
-
-    name: str
-    frames: Callable[[], Iterable]
-    n_frames: int
-    intrinsics: object
-    gt: Trajectory
-    gt_masks: Callable[[], Iterable] | None = None
-    max_diff: float = 0.01
-    error: str | None = None     # a damaged file found up front: every run of it fails with this
-
-
-def parse_variants(text: str | Iterable[str]) -> list[str]:
-    names = [v.strip() for v in (text.split(",") if isinstance(text, str) else text) if v.strip()]
-    unknown = [v for v in names if v not in VARIANTS]
-    if unknown or not names:
-        raise ConfigError(f"unknown variant(s) {', '.join(unknown) or '(none given)'}; choose from: "
-                          f"{', '.join(VARIANTS)}")
-    return names
-
-
-def variant_config(config: PipelineConfig, variant: str) -> PipelineConfig:
-    return apply_overrides(config, VARIANTS[variant][1])
 
 
 def config_hash(config: PipelineConfig, seq: EvalSequence, variant: str, extra: dict) -> str:

@@ -586,24 +586,24 @@ def _cmd_config(args) -> int:
 
 def _cmd_eval_sintel(args) -> int:
     from eval.datasets import sintel_sequences
-    from eval.harness import parse_variants
+    from eval.variants import parse_variants
 
-    config = _pipeline_config(args)
     _check_workers(args.workers)
     variants = parse_variants(args.variants)
     if "gt" in variants and not args.masks_root:
         raise ConfigError("variant 'gt' needs --masks-root (folder of <seq>/frame_XXXX.png masks)")
+    # The dataset before the pipeline is imported (as run opens its inputs first).
     seqs = sintel_sequences(args.root, pass_=args.pass_, masks_root=args.masks_root,
                             names=args.seqs.split(",") if args.seqs else None)
+    config = _pipeline_config(args)
     return _evaluate(args, config, seqs, variants, {"dataset": "sintel", "pass": args.pass_})
 
 
 def _cmd_eval_tum(args) -> int:
     from data_tools.calibration import parse_calibration
     from eval.datasets import TUM_MAX_DIFF, tum_sequences
-    from eval.harness import parse_variants
+    from eval.variants import parse_variants
 
-    config = _pipeline_config(args)
     _check_workers(args.workers)
     variants = parse_variants(args.variants)
     if "gt" in variants:
@@ -613,7 +613,9 @@ def _cmd_eval_tum(args) -> int:
     max_diff = TUM_MAX_DIFF if args.max_diff is None else args.max_diff
     if not (math.isfinite(max_diff) and max_diff > 0):
         raise ConfigError(f"--max-diff must be a positive number of seconds, got {args.max_diff!r}")
+    # The folder before the pipeline is imported (as run opens its inputs first).
     seqs = tum_sequences(args.root, calib=calib, max_diff=max_diff, folder_calib=not estimate)
+    config = _pipeline_config(args)
     # The tolerance and the camera change the results of finished runs, so they are part of
     # what a run is.
     return _evaluate(args, config, seqs, variants,

@@ -238,7 +238,8 @@ def test_verdict_quality_counts_what_a_curator_keeps_and_throws_away():
 def test_parts_score_rows_of_a_trajectory_aligned_alone(tmp_path):
     """`--parts NAME=A:B`: each run's ATE on its rows A to B-1, each part aligned alone (as
     `eval traj --frames`): a drift confined to the second half shows in that part only."""
-    from eval.harness import EvalSequence, parse_parts, score_parts
+    from eval.datasets import EvalSequence
+    from eval.harness import parse_parts, score_parts
     from eval.metrics import Trajectory
     from mona_vo.errors import ConfigError
 

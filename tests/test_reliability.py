@@ -504,9 +504,10 @@ def test_bad_input_fails_in_one_line_naming_the_file(case, bad_input_runs):
 
 
 def test_a_bad_input_fails_before_the_pipeline_is_loaded(small_scene, tmp_path):
-    """`run` and `masks` open their inputs first: a missing path, a bad --calib or a masks folder
-    that does not match fails with GTSAM and SciPy's spatial module never imported (they cost a
-    failing command 1.5 s of its 2), and nothing is written."""
+    """`run` and `masks` open their inputs first, `eval sintel` and `eval tum` their dataset: a
+    missing path, a bad --calib, a masks folder that does not match or a folder that is no
+    dataset fails with GTSAM and SciPy's spatial module never imported (they cost a failing
+    command 1.5 s of its 2), and nothing is written."""
     src, _ = small_scene
     probe = ("import sys\n"
              "from mona_vo.cli import main\n"
@@ -516,7 +517,9 @@ def test_a_bad_input_fails_before_the_pipeline_is_loaded(small_scene, tmp_path):
     cases = [["run", tmp_path / "no_such_folder"],
              ["run", src, "--calib", "0,500,192,82"],
              ["run", src, "--masks", tmp_path / "no_masks_here"],
-             ["masks", tmp_path / "no_such_video.mp4"]]
+             ["masks", tmp_path / "no_such_video.mp4"],
+             ["eval", "sintel", "--root", src, "--variants", "none"],
+             ["eval", "tum", "--root", tmp_path / "no_such_sequence"]]
     for argv in cases:
         proc = subprocess.run([sys.executable, "-c", probe, "-q", *map(str, argv),
                                "--out", str(tmp_path / "out")], capture_output=True, text=True)
