@@ -334,7 +334,7 @@ def _pipeline_config(args, *, speed_preset: bool = True):
 def _cmd_run(args) -> int:
     from mona_vo.inputs import open_inputs
 
-    # The inputs first, before the pipeline is imported: a bad one fails in a third of a second.
+    # The inputs first, before the pipeline is imported: a bad one fails in about half a second.
     inputs = open_inputs(args.input, calib=args.calib, masks=args.masks, stride=args.stride,
                          max_frames=args.max_frames, gt_path=args.gt)
     from mona_vo.batch import clip_verdict, summary_from_report

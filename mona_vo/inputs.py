@@ -1,7 +1,7 @@
 """What a run is given, opened and checked before any work starts: the frames, the camera, the
 masks and the ground truth. This module imports only the readers (no GTSAM, no SciPy, no
 pipeline), so that the commands open a run's inputs first and turn a bad one into its one-line
-error in a third of a second, not after loading the whole pipeline (1.5 s more)."""
+error in about half a second, not after loading the whole pipeline (1.5 s more)."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -57,7 +57,6 @@ def render(tmp_path_factory):
     import copy
     import fcntl
     import hashlib
-    import os
     import pickle
 
     from data_tools.synthetic import SyntheticScene
