@@ -50,7 +50,8 @@ from mona_vo.geometry import homography_jacobians, reprojection_residuals
 from mona_vo.patch_align import Anchors, align_patches
 from mona_vo.point_selection import seed_points
 from mona_vo.tracking import LKTracker, Tracker, to_gray
-from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose, rotation_only,
+from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose,
+                              rotation_only, tighten_relative_pose,
                               rotation_parallax_deg, shared_inliers, translation_angle_deg,
                               translation_spread_deg, triangulate)
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
@@ -137,6 +138,11 @@ class VOConfig:
                                             # share of the refit's inliers were inliers of the
                                             # start it replaces (two_view.shared_inliers; 0:
                                             # the turn alone decides, stop 51's gate)
+    init_fit_scales: int = setting(1, ge=1, le=6)  # the start pair's pose is fitted at this
+                                            # many inlier thresholds (1 px, halved each time)
+                                            # and the one that explains its tracks best at
+                                            # three times their noise starts the map
+                                            # (two_view.tighten_relative_pose; 1: one fit)
     init_keyframes: int = setting(4, ge=2)  # keyframes of the first window (two-view pair included)
     keyframe_parallax_px: float = setting(12.0, gt=0)  # median rotation-free track motion since
                                             # the last keyframe, px
@@ -725,6 +731,13 @@ class VisualOdometry:
         if cfg.init_max_translation_spread_deg < 180 and \
                 translation_spread_deg(ua, ub, intr0, intr) > cfg.init_max_translation_spread_deg:
             return None
+        if cfg.init_fit_scales > 1:
+            # The gates above judge the 1 px fit, so when a map starts does not change; only
+            # which pose starts it (a tighter fit's parallax is often smaller: asked of it, a
+            # generated slow pan with MONA masks never started).
+            tight = tighten_relative_pose(rel, uv0, uv, intr0, intr, scales=cfg.init_fit_scales)
+            if tight.n_inliers >= cfg.init_min_inliers:
+                rel = tight
         return rel
 
     def _densify_pair(self, rel, att: "_Attempt", gray, mask, uv0, uv, intr0, intr):
