@@ -142,7 +142,12 @@ class VOConfig:
                                             # many inlier thresholds (1 px, halved each time)
                                             # and the one that explains its tracks best at
                                             # three times their noise starts the map
-                                            # (two_view.tighten_relative_pose; 1: one fit)
+                                            # (two_view.tighten_relative_pose; 1: one fit).
+                                            # Off: 3 mends generated wrong-way starts, tuning
+                                            # and held out, but the VO without masks then
+                                            # copes with the central-claim scenes' cars and the
+                                            # masks no longer lower the ATE there (0.53 ->
+                                            # 0.97x); README, stop 54
     init_keyframes: int = setting(4, ge=2)  # keyframes of the first window (two-view pair included)
     keyframe_parallax_px: float = setting(12.0, gt=0)  # median rotation-free track motion since
                                             # the last keyframe, px
