@@ -50,10 +50,9 @@ from mona_vo.geometry import homography_jacobians, reprojection_residuals
 from mona_vo.patch_align import Anchors, align_patches
 from mona_vo.point_selection import seed_points
 from mona_vo.tracking import LKTracker, Tracker, to_gray
-from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose,
-                              rotation_only, tighten_relative_pose,
-                              rotation_parallax_deg, shared_inliers, translation_angle_deg,
-                              translation_spread_deg, triangulate)
+from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose, rotation_only,
+                              rotation_parallax_deg, shared_inliers, tighten_relative_pose,
+                              translation_angle_deg, translation_spread_deg, triangulate)
 from mona_vo.vo_map import LOW_CONFIDENCE as _LOW, FrameStatus, LandmarkFlag, VOMap, VOState
 from mona_vo.vo_steps import (Observation, ParallaxEvidence, PoseSettings, dissimilar_tracks,
                               drift_test, dynamic_test, estimate_pose, find_by_projection,

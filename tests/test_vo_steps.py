@@ -556,7 +556,7 @@ def _wrong_starts(noise, slide_px, n_slid, scales):
     return wrong
 
 
-def test_the_tightest_fit_mends_starts_that_a_few_slid_tracks_turned_the_wrong_way():
+def test_the_tightened_fit_mends_starts_that_a_few_slid_tracks_turned_the_wrong_way():
     """two_view.tighten_relative_pose (vo.init_fit_scales): at 1 px, ten times the noise of
     sharp frames, eight slid tracks of seventy hold a pose that travels the wrong way on a
     sixth of the draws (7 of 40); the fit chosen at three times the tracks' own noise on none."""
@@ -565,7 +565,7 @@ def test_the_tightest_fit_mends_starts_that_a_few_slid_tracks_turned_the_wrong_w
     assert one >= 4 and three <= 1
 
 
-def test_the_tightest_fit_is_no_worse_than_one_fit_on_noisy_tracks():
+def test_the_tightened_fit_is_no_worse_than_one_fit_on_noisy_tracks():
     """On tracks as noisy as real footage's (0.3 and 0.5 px, nothing slid) the choice's
     threshold widens with the noise: never more wrong starts than the 1 px fit alone (5 and 16
     of 40 each; choosing by the median distance alone took the tight fits' overfitted poses,
