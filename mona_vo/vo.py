@@ -735,14 +735,11 @@ class VisualOdometry:
         if cfg.init_max_translation_spread_deg < 180 and \
                 translation_spread_deg(ua, ub, intr0, intr) > cfg.init_max_translation_spread_deg:
             return None
-        if cfg.init_fit_scales > 1:
-            # The gates above judge the 1 px fit, so when a map starts does not change; only
-            # which pose starts it (a tighter fit's parallax is often smaller: asked of it, a
-            # generated slow pan with MONA masks never started).
-            tight = tighten_relative_pose(rel, uv0, uv, intr0, intr, scales=cfg.init_fit_scales)
-            if tight.n_inliers >= cfg.init_min_inliers:
-                rel = tight
-        return rel
+        # The gates above judge the 1 px fit, so when a map starts does not change; only which
+        # pose starts it (a tighter fit's parallax is often smaller: asked of it, a generated
+        # slow pan with MONA masks never started). One fit (init_fit_scales=1) is the 1 px fit.
+        tight = tighten_relative_pose(rel, uv0, uv, intr0, intr, scales=cfg.init_fit_scales)
+        return tight if tight.n_inliers >= cfg.init_min_inliers else rel
 
     def _densify_pair(self, rel, att: "_Attempt", gray, mask, uv0, uv, intr0, intr):
         """The start pair's pose fitted again on many more matches of its two frames

@@ -545,14 +545,13 @@ def _start_pairs(noise, slide_px, n_slid, draws=40, step_m=0.05):
 
 def _wrong_starts(noise, slide_px, n_slid, scales):
     """How many of the draws' start pairs travel more than 30 deg off the true direction."""
-    from mona_vo.two_view import tighten_relative_pose
+    from mona_vo.two_view import tighten_relative_pose, translation_angle_deg
 
     wrong = 0
     for T, lens, ua, ub in _start_pairs(noise, slide_px, n_slid):
         rel = tighten_relative_pose(relative_pose(ua, ub, lens, lens), ua, ub, lens, lens,
                                     scales=scales)
-        t = rel.T_a_b[:3, 3]
-        wrong += np.degrees(np.arccos(t @ T[:3, 3] / np.linalg.norm(T[:3, 3]))) > 30.0
+        wrong += translation_angle_deg(rel.T_a_b, T) > 30.0
     return wrong
 
 
