@@ -137,16 +137,14 @@ class VOConfig:
                                             # share of the refit's inliers were inliers of the
                                             # start it replaces (two_view.shared_inliers; 0:
                                             # the turn alone decides, stop 51's gate)
-    init_fit_scales: int = setting(1, ge=1, le=6)  # the start pair's pose is fitted at this
+    init_fit_scales: int = setting(3, ge=1, le=6)  # the start pair's pose is fitted at this
                                             # many inlier thresholds (1 px, halved each time)
                                             # and the one that explains its tracks best at
                                             # three times their noise starts the map
-                                            # (two_view.tighten_relative_pose; 1: one fit).
-                                            # Off: 3 mends generated wrong-way starts, tuning
-                                            # and held out, but the VO without masks then
-                                            # copes with the central-claim scenes' cars and the
-                                            # masks no longer lower the ATE there (0.53 ->
-                                            # 0.97x); README, stop 54
+                                            # (two_view.tighten_relative_pose; 1: one fit, the
+                                            # default before stop 55). 3 mends generated
+                                            # wrong-way starts, tuning and held out alike
+                                            # (README, stops 54 and 55)
     init_keyframes: int = setting(4, ge=2)  # keyframes of the first window (two-view pair included)
     keyframe_parallax_px: float = setting(12.0, gt=0)  # median rotation-free track motion since
                                             # the last keyframe, px

@@ -21,14 +21,20 @@ def _gt_masks(folder, names):
 
 def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
     # Measured (one-large seed 0, 384 x 164, 24 frames; a car covers 28 % of the view), ATE % of
-    # path without masks / with MONA / with the true masks:
-    # - streaming VO (vo.refine=none): 0.58 / 0.21 / 0.21; the bound asks for most of that gain:
-    #   masks that miss the car, or mask static ground that the VO then loses, fail it;
-    # - the default (global refinement, tracked frames posed again on the refined map, keyframe
-    #   dissimilarity check): 0.151 / 0.153 / 0.183 (before the dissimilarity check 0.164 /
-    #   0.156 / 0.156). The default VO now copes with this car by itself -- even the true masks
-    #   do not lower its error -- so here the masks must not be clearly worse than none (5 %)
-    #   nor than the true masks (10 %).
+    # path over five draws of the VO's point grid (vo.grid_size 14-18; `python -m eval.vo_bench
+    # --presets one-large --seeds 0 --variants none,mona,gt --frames 24 --size 384x164 --draws
+    # vo.grid_size=14,15,16,17,18 [--set vo.refine=none]`), medians without masks / with MONA /
+    # with the true masks:
+    # - the sliding-window VO (vo.refine=none), what the masks are for: 0.478 / 0.182 / 0.163,
+    #   MONA / none 0.28-0.43 in every draw; the bound asks for most of that gain: masks that
+    #   miss the car, or mask static ground that the VO then loses, fail it;
+    # - the default (global refinement after it): 0.137 / 0.143 / 0.142. The refinement over
+    #   all keyframes outweighs the car's tracks by itself -- even the true masks do not lower
+    #   its error (worst draw 1.47x none) -- so there the masks must not be clearly worse than
+    #   the true masks (10 %; on the default draw 0.148 / 0.180), nor than none over draws and
+    #   scenes (the test below). Until stop 54 the default showed a fifth of gain here: the
+    #   no-mask VO's start pair went the wrong way in one draw (5.6 % of path), which the
+    #   start's fit at its tracks' own noise (vo.init_fit_scales) mends since stop 55.
     folder, scene = small_scene
     t = np.arange(len(scene), dtype=float)
     gt = Trajectory(t, scene.poses())
@@ -50,38 +56,43 @@ def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
                                      masks=masks, config=cfg, on_frame=keep)
         return evaluate_trajectory(gt, Trajectory(t, result.vo.poses)).ate
 
-    assert ate("mona", **{"vo.refine": "none"}) < 0.6 * ate(None, **{"vo.refine": "none"})
-    mona, none, true = ate("mona"), ate(None), ate(true_masks)
-    assert mona <= 1.05 * none and mona <= 1.1 * true, (mona, none, true)
-    # One run is one draw of the VO's point grid (stop 26: this scene's spread is as large as
-    # the masks' effect). Over five draws (vo.grid_size 14-18; measured ATE % of path without
-    # masks 0.167 / 5.585 / 0.159 / 0.128 / 0.177, with MONA 0.145 / 0.128 / 0.153 / 0.133 /
-    # 0.124) the masks lower the median by a fifth and are never clearly worse in one draw.
-    draws = [(ate("mona", **{"vo.grid_size": g}), ate(None, **{"vo.grid_size": g}))
-             for g in (14, 15, 17, 18)] + [(mona, none)]
-    with_masks, without = np.array(draws).T
-    assert np.median(with_masks) < 0.9 * np.median(without), draws
+    draws = np.array([(ate("mona", **{"vo.grid_size": g, "vo.refine": "none"}),
+                       ate(None, **{"vo.grid_size": g, "vo.refine": "none"}))
+                      for g in (14, 15, 16, 17, 18)])
+    with_masks, without = draws.T
+    assert np.median(with_masks) < 0.6 * np.median(without), draws
     assert np.all(with_masks <= 1.1 * without), draws
+    # The default against the true masks on its own draw; against none over draws and scenes
+    # in the test below.
+    mona, true = ate("mona"), ate(true_masks)
+    assert mona <= 1.1 * true, (mona, true)
 
 
 def test_mona_masks_lower_the_ate_over_scenes_and_draws():
     """The same claim over five scenes of the kind (generated one-large seeds 0-4, a car over a
     fifth to a third of the view, 384 x 164, 24 frames, true intrinsics), three draws of the
     VO's point grid each (`python -m eval.vo_bench --presets one-large --seeds 0-4 --variants
-    none,mona --frames 24 --size 384x164 --draws vo.grid_size=14,16,18`): one scene's median is
-    one draw of scenes (the test above; stop 41-42: with `vo.anchor_tracks=true` its median
-    ratio is 1.02x while over ten scenes the masks keep most of their effect). Measured,
-    geometric mean over the scenes of MONA / no masks on the medians: 0.52 (anchoring on:
-    0.57); per scene 0.88 / 0.79 / 1.01 / 0.12 / 0.46 (on: 1.03 / 0.77 / 1.13 / 0.12 / 0.55).
-    Masks that miss the cars, or mask static ground the VO then loses, give about 1."""
+    none,mona --frames 24 --size 384x164 --draws vo.grid_size=14,16,18 [--set vo.refine=none]`):
+    one scene's median is one draw of scenes. Measured, geometric mean over the scenes of MONA /
+    no masks on the medians: the sliding-window VO 0.78 (per scene 0.39 / 1.04 / 1.07 / 0.70 /
+    0.96; on seeds 5-12, never chosen on, 0.80, worst scene 1.19); the default, with the global
+    refinement, 0.97 (worst 1.05; seeds 5-12 0.96, worst 1.24). Masks that miss the cars, or
+    mask static ground the VO then loses, give about 1 on the first. Until stop 54 the default
+    read 0.52 here: most of that was the no-mask VO's wrong-way starts (seeds 1 and 3), mended
+    since stop 55 by the start's fit at its tracks' own noise (vo.init_fit_scales)."""
     from eval.vo_bench import benchmark, draw_ratios
 
+    grid = ("14", "16", "18")
+    draws = ([{"vo.grid_size": g, "vo.refine": "none"} for g in grid]
+             + [{"vo.grid_size": g} for g in grid])
     rows = benchmark(("one-large",), range(5), ("none", "mona"), n_frames=24, width=384,
-                     height=164, draws=[{"vo.grid_size": g} for g in ("14", "16", "18")])
-    per_seq, (mona,) = draw_ratios(rows)
-    assert mona["sequences"] == 5 and all(s["draws"] == 3 for s in per_seq), per_seq
-    assert mona["gmean_median_ratio"] < 0.8, per_seq
-    assert max(s["median_ratio"] for s in per_seq) < 1.2, per_seq
+                     height=164, draws=draws)
+    for streaming, bound in ((True, 0.85), (False, 1.05)):
+        part = [r for r in rows if ("vo.refine=none" in r["draw"]) == streaming]
+        per_seq, (mona,) = draw_ratios(part)
+        assert mona["sequences"] == 5 and all(s["draws"] == 3 for s in per_seq), per_seq
+        assert mona["gmean_median_ratio"] < bound, (streaming, per_seq)
+        assert max(s["median_ratio"] for s in per_seq) < 1.2, (streaming, per_seq)
 
 
 def test_draws_of_the_vo_alone_get_the_masks_of_the_first_draw_and_the_same_trajectories():

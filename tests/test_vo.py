@@ -222,7 +222,9 @@ def test_the_start_pair_refitted_on_many_matches_ends_a_slow_pans_rotation_bias(
     clip turned 2.1 deg short of the true 12.8; refitted on about 600 matches, 0.13 deg. 208, a
     hand-held walk whose start pair was right (0.02 deg): the many matches slid (LK across
     eleven frames of shake) and would have started it 1.5 deg off; the chi-square test keeps
-    the pair it had."""
+    the pair it had. Since stop 55 the start pair's fit at its tracks' own noise
+    (vo.init_fit_scales=3) ends 207's bias by itself (measured 0.13 deg without the refit), so
+    the refit is judged behind the one 1 px fit, where the bias still arises."""
     from mona_vo.config import apply_overrides
     from mona_vo.pipeline import PipelineConfig, estimate_trajectory
 
@@ -230,7 +232,8 @@ def test_the_start_pair_refitted_on_many_matches_ends_a_slow_pans_rotation_bias(
     for seed in (207, 208):
         scene, frames, masks = sequence("mixed", seed, 40, 640, 272)
         for dense in (1000, 0):
-            cfg = apply_overrides(PipelineConfig(), {"vo.init_dense_points": dense})
+            cfg = apply_overrides(PipelineConfig(), {"vo.init_dense_points": dense,
+                                                     "vo.init_fit_scales": 1})
             res = estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=list(masks),
                                       config=cfg).vo
             err[seed, dense] = _turn_error_deg(res.poses, scene.poses())
@@ -523,24 +526,29 @@ def test_the_global_refinement_moves_a_wrong_map_much_and_a_good_one_little(rend
     seed 3, 4.5 deg per frame, motion blur) the global refinement moves the keyframes by
     several % of their path and the poses rested on few points, so `batch` calls the clip not
     usable; on a well-posed walk (seed 1) both stay quiet and it is usable. True masks and
-    intrinsics, so only the VO is judged."""
+    intrinsics, so only the VO is judged. The wrong map is the one started from the pair's one
+    1 px fit (vo.init_fit_scales=1); from the default start seed 3 is still wrong (3.4 % of
+    path) but less inconsistent (measured shift 0.54 %, a tenth of the poses on 32 points), and
+    the verdict must still reject it."""
     from eval.metrics import Trajectory, score_trajectory
     from mona_vo.batch import clip_verdict
 
     out = {}
-    for seed in (3, 1):
+    for seed, sets in ((3, {"init_fit_scales": 1}), (3, {}), (1, {})):
         scene, rendered = render(SceneConfig(width=640, height=272, n_frames=40, preset="mixed", seed=seed))
-        _, res = _run(scene, [r.image for r in rendered], [r.mask for r in rendered])
+        _, res = _run(scene, [r.image for r in rendered], [r.mask for r in rendered], **sets)
         ate = score_trajectory(Trajectory(np.arange(40.0), scene.poses()),
                                Trajectory(res.timestamps, res.poses)).ate_percent_of_path
         summary = {"frames": 40, "frames_with_pose": 40, "low_confidence_share": 0.0,
                    "reprojection_rmse_px": res.reprojection_rmse_px,
                    "global_shift_pct": res.refine["keyframe_shift_pct"],
                    "support_p10": res.pose_support()["inliers_p10"]}
-        out[seed] = ate, summary, clip_verdict(summary)
-    ate, s, v = out[3]
+        out[seed, bool(sets)] = ate, summary, clip_verdict(summary)
+    ate, s, v = out[3, True]
     assert ate > 1.0 and s["global_shift_pct"] > 1.0 and s["support_p10"] < 40 and not v.usable
-    ate, s, v = out[1]
+    ate, s, v = out[3, False]
+    assert ate > 1.0 and not v.usable, (ate, s)
+    ate, s, v = out[1, False]
     assert ate < 0.2 and s["global_shift_pct"] < 0.25 and s["support_p10"] > 100 and v.usable
 
 
