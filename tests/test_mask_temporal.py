@@ -71,28 +71,31 @@ def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
 def test_mona_masks_lower_the_ate_over_scenes_and_draws():
     """The same claim over five scenes of the kind (generated one-large seeds 0-4, a car over a
     fifth to a third of the view, 384 x 164, 24 frames, true intrinsics), three draws of the
-    VO's point grid each (`python -m eval.vo_bench --presets one-large --seeds 0-4 --variants
-    none,mona --frames 24 --size 384x164 --draws vo.grid_size=14,16,18 [--set vo.refine=none]`):
-    one scene's median is one draw of scenes. Measured, geometric mean over the scenes of MONA /
-    no masks on the medians: the sliding-window VO 0.78 (per scene 0.39 / 1.04 / 1.07 / 0.70 /
-    0.96; on seeds 5-12, never chosen on, 0.80, worst scene 1.19); the default, with the global
-    refinement, 0.97 (worst 1.05; seeds 5-12 0.96, worst 1.24). Masks that miss the cars, or
-    mask static ground the VO then loses, give about 1 on the first. Until stop 54 the default
-    read 0.52 here: most of that was the no-mask VO's wrong-way starts (seeds 1 and 3), mended
-    since stop 55 by the start's fit at its tracks' own noise (vo.init_fit_scales)."""
+    VO's point grid each on the sliding-window VO (`python -m eval.vo_bench --presets one-large
+    --seeds 0-4 --variants none,mona --frames 24 --size 384x164 --set vo.refine=none --draws
+    vo.grid_size=14,16,18`): one scene's median is one draw of scenes. Measured, geometric mean
+    over the scenes of MONA / no masks on the medians 0.78 (per scene 0.39 / 1.04 / 1.07 / 0.70 /
+    0.96; on seeds 5-12, never chosen on, 0.80, worst scene 1.19). Masks that miss the cars, or
+    mask static ground the VO then loses, give about 1. The default VO, with the global
+    refinement, on its own draw of each scene (grid 16): MONA / none 1.16 / 1.04 / 1.03 / 0.57 /
+    0.78, geometric mean 0.88 (over three draws 0.97, worst scene 1.05; seeds 5-12 0.96, worst
+    1.24), held to no harm. Until stop 54 the default read 0.52 over three draws: most of that
+    was the no-mask VO's wrong-way starts (seeds 1 and 3), mended since stop 55 by the start's
+    fit at its tracks' own noise (vo.init_fit_scales)."""
     from eval.vo_bench import benchmark, draw_ratios
 
-    grid = ("14", "16", "18")
-    draws = ([{"vo.grid_size": g, "vo.refine": "none"} for g in grid]
-             + [{"vo.grid_size": g} for g in grid])
+    draws = ([{"vo.grid_size": g, "vo.refine": "none"} for g in ("14", "16", "18")]
+             + [{"vo.refine": "global"}])
     rows = benchmark(("one-large",), range(5), ("none", "mona"), n_frames=24, width=384,
                      height=164, draws=draws)
-    for streaming, bound in ((True, 0.85), (False, 1.05)):
-        part = [r for r in rows if ("vo.refine=none" in r["draw"]) == streaming]
-        per_seq, (mona,) = draw_ratios(part)
-        assert mona["sequences"] == 5 and all(s["draws"] == 3 for s in per_seq), per_seq
-        assert mona["gmean_median_ratio"] < bound, (streaming, per_seq)
-        assert max(s["median_ratio"] for s in per_seq) < 1.2, (streaming, per_seq)
+    streaming = [r for r in rows if "vo.refine=none" in r["draw"]]
+    per_seq, (mona,) = draw_ratios(streaming)
+    assert mona["sequences"] == 5 and all(s["draws"] == 3 for s in per_seq), per_seq
+    assert mona["gmean_median_ratio"] < 0.85, per_seq
+    assert max(s["median_ratio"] for s in per_seq) < 1.2, per_seq
+    per_seq, (mona,) = draw_ratios([r for r in rows if r["draw"] == "vo.refine=global"])
+    assert mona["sequences"] == 5 and mona["gmean_median_ratio"] < 1.05, per_seq
+    assert max(s["median_ratio"] for s in per_seq) < 1.25, per_seq
 
 
 def test_draws_of_the_vo_alone_get_the_masks_of_the_first_draw_and_the_same_trajectories():
