@@ -370,6 +370,14 @@ def _forward_follow_start():
     return scene, [r.image for r in rendered], [r.mask for r in rendered], scene.poses()[:16]
 
 
+@functools.lru_cache(maxsize=1)
+def _forward_follow_one_fit():
+    """The streaming VO over that start with the start pair's one 1 px fit: the baseline of
+    both tests below (the same worker runs them, xdist group forward-follow-start)."""
+    scene, images, masks, _ = _forward_follow_start()
+    return _run(scene, images, masks, refine="none", init_fit_scales=1)[1]
+
+
 @pytest.mark.xdist_group("forward-follow-start")
 def test_the_start_pair_check_drops_tracks_sliding_along_depth_edges():
     # A tenth of the start pair's tracks slide along depth edges, and the essential matrix
@@ -386,7 +394,7 @@ def test_the_start_pair_check_drops_tracks_sliding_along_depth_edges():
 
     _, on = _run(scene, images, masks, refine="none", init_drop_dissimilar=True,
                  init_fit_scales=1)
-    _, off = _run(scene, images, masks, refine="none", init_fit_scales=1)
+    off = _forward_follow_one_fit()
     assert on.drops["tracks_dissimilar"] > 0
     assert on.status[0] == "keyframe"    # the map still starts at the first frame
     e_on, e_off = direction_error(on.poses), direction_error(off.poses)
@@ -402,7 +410,7 @@ def test_the_start_pair_fitted_at_the_tracks_noise_travels_the_right_way():
     from eval.metrics import heading_errors_deg
 
     scene, images, masks, G = _forward_follow_start()
-    _, one = _run(scene, images, masks, refine="none", init_fit_scales=1)
+    one = _forward_follow_one_fit()
     _, tight = _run(scene, images, masks, refine="none", init_fit_scales=3)
     e_one = float(np.nanmedian(heading_errors_deg(G, one.poses)))
     e_tight = float(np.nanmedian(heading_errors_deg(G, tight.poses)))
