@@ -98,22 +98,12 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     wall = time.perf_counter() - t0
     gt = Trajectory(np.arange(len(frames), dtype=float),
                     scene.poses() if gt_poses is None else gt_poses)
-    est = Trajectory(result.vo.timestamps, result.vo.poses)
     nan = float("nan")
-    errors = {"ate": nan, "ate_pct": nan, "rpe_trans": nan, "rpe_rot_deg": nan, "path_m": 0.0,
-              "heading_deg": nan, "rot_rmse_deg": nan, "est_translation_extent": nan,
-              "status": "ok"}
-    try:
-        m = score_trajectory(gt, est)
-        if isinstance(m, RotationMetrics):
-            errors.update(rpe_rot_deg=m.rpe_rot_deg, rot_rmse_deg=m.rot_rmse_deg,
-                          est_translation_extent=m.est_translation_extent)
-        else:
-            errors.update(ate=m.ate, ate_pct=m.ate_percent_of_path, rpe_trans=m.rpe_trans,
-                          rpe_rot_deg=m.rpe_rot_deg, path_m=m.path_length,
-                          heading_deg=m.heading_deg)
-    except EvalError as exc:  # one sequence that cannot be scored must not end the benchmark
-        errors["status"] = f"failed: {exc}"
+    errors = _errors(gt, Trajectory(result.vo.timestamps, result.vo.poses))
+    # The sliding window's own trajectory (vo.refine=none, to the bit) from the same run.
+    streaming = errors["ate_pct"]
+    if result.vo.refine and result.vo.poses_streaming is not None:
+        streaming = _errors(gt, Trajectory(result.vo.timestamps, result.vo.poses_streaming))["ate_pct"]
     n = len(frames)
     # The verdict `batch` would give this clip, from the report `run` would write.
     summary = clip_summary(result, name=f"generated/{variant}", masks=variant, config=config,
@@ -130,7 +120,7 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
     mask_seconds = sum(v for k, v in result.timings.items() if k.startswith("masks."))
     true_fx = scene.intrinsics.fx
     return {
-        "variant": variant, **errors, "calib": calib,
+        "variant": variant, **errors, "ate_pct_streaming": streaming, "calib": calib,
         "focal_error_pct": 100.0 * (result.intrinsics.fx - true_fx) / true_fx,
         "final_focal_error_pct": 100.0 * (result.vo.focal - true_fx) / true_fx,
         "frames": n, "frames_with_pose": int(np.isfinite(result.vo.poses).all(axis=(1, 2)).sum()),
@@ -150,6 +140,25 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
         "support_p10": _nan_if_none(summary["support_p10"]),
         "usable": verdict.usable, "verdict": verdict.text(),
     }
+
+
+def _errors(gt: Trajectory, est: Trajectory) -> dict:
+    nan = float("nan")
+    errors = {"ate": nan, "ate_pct": nan, "rpe_trans": nan, "rpe_rot_deg": nan, "path_m": 0.0,
+              "heading_deg": nan, "rot_rmse_deg": nan, "est_translation_extent": nan,
+              "status": "ok"}
+    try:
+        m = score_trajectory(gt, est)
+        if isinstance(m, RotationMetrics):
+            errors.update(rpe_rot_deg=m.rpe_rot_deg, rot_rmse_deg=m.rot_rmse_deg,
+                          est_translation_extent=m.est_translation_extent)
+        else:
+            errors.update(ate=m.ate, ate_pct=m.ate_percent_of_path, rpe_trans=m.rpe_trans,
+                          rpe_rot_deg=m.rpe_rot_deg, path_m=m.path_length,
+                          heading_deg=m.heading_deg)
+    except EvalError as exc:  # one sequence that cannot be scored must not end the benchmark
+        errors["status"] = f"failed: {exc}"
+    return errors
 
 
 @dataclass
@@ -292,19 +301,21 @@ def summarize(rows: list[dict], baseline: str = "none") -> list[dict]:
     return out
 
 
-def draw_ratios(rows: list[dict], baseline: str = "none") -> tuple[list[dict], list[dict]]:
+def draw_ratios(rows: list[dict], baseline: str = "none",
+                key: str = "ate_pct") -> tuple[list[dict], list[dict]]:
     """A variant against the ``baseline`` over the draws of each sequence (first repeats):
     per (preset, seed, variant), the median ATE % of path of either over the draws both scored,
     the ratio of the medians and the worst paired ratio (the largest variant / baseline of one
     draw); per variant, over the sequences, the geometric mean of the median ratios and how
     many sequences have the variant clearly lower (median ratio < 0.9) and never clearly higher
     (no draw above 1.1): the two bounds `tests/test_mask_temporal.py` asks of MONA on its one
-    scene. Returns (per sequence, per variant)."""
+    scene. ``key``: the row's error to compare (``ate_pct_streaming``: the same runs' sliding-
+    window trajectories, before the global refinement). Returns (per sequence, per variant)."""
     by_run: dict[tuple, dict[str, float]] = {}     # (preset, seed, variant) -> draw -> ATE %
     for r in rows:
         if r.get("repeat", 0) == 0:
             by_run.setdefault((r["preset"], r["seed"], r["variant"]), {})[r.get("draw", "")] = \
-                r["ate_pct"]
+                r[key]
     per_seq = []
     for (preset, seed, variant), ate in by_run.items():
         if variant == baseline:
@@ -574,9 +585,14 @@ def main(argv=None) -> int:
     summary = summarize(rows)
     print(format_summary(summary))
     ratios = draw_ratios(rows) if draws else ([], [])
+    refined = any(r["ate_pct_streaming"] != r["ate_pct"] for r in rows)
+    streaming = draw_ratios(rows, key="ate_pct_streaming") if draws and refined else ([], [])
     if draws:
         print()
         print(format_draw_ratios(*ratios))
+    if streaming[0]:
+        print("\nthe same runs before the global refinement (the sliding window's trajectories):")
+        print(format_draw_ratios(*streaming))
     verdicts = {v: verdict_quality([r for r in rows if r["variant"] == v], args.good_pct)
                 for v in dict.fromkeys(r["variant"] for r in rows)}
     for v, q in verdicts.items():
@@ -588,7 +604,9 @@ def main(argv=None) -> int:
 
         write_text_atomic(args.out, json.dumps({"rows": rows, "summary": summary, "verdict": verdicts,
                                                 "draws": {"per_sequence": ratios[0],
-                                                          "per_variant": ratios[1]}},
+                                                          "per_variant": ratios[1]},
+                                                "draws_streaming": {"per_sequence": streaming[0],
+                                                                    "per_variant": streaming[1]}},
                                                indent=1, default=float) + "\n")
     print(f"peak memory {peak_memory_mb():.0f} MB")
     return 0

@@ -364,7 +364,9 @@ def _with_repeats(vo: VOResult, rows: np.ndarray, repeat_of: np.ndarray,
     return dataclasses.replace(vo, timestamps=np.asarray(timestamps, np.float64),
                                poses=vo.poses[rows], is_keyframe=vo.is_keyframe[rows] & (repeat_of < 0),
                                status=[vo.status[r] for r in rows], inliers=vo.inliers[rows],
-                               map_segments=segments)
+                               map_segments=segments,
+                               poses_streaming=None if vo.poses_streaming is None
+                               else vo.poses_streaming[rows])
 
 
 @dataclass

@@ -272,6 +272,9 @@ class VOResult:
                  lost (a blank stretch, a cut between shots). Each has its own scale, and the
                  pose from one to the next is not measured (the walk is carried on), so a
                  clip with more than one is one trajectory only up to those joins.
+    poses_streaming: (N, 4, 4) the poses before the global refinement: the trajectory
+                 vo.refine=none gives on the same frames, to the bit (equal to ``poses`` when
+                 no refinement ran), so one run measures both VOs.
     """
 
     timestamps: np.ndarray
@@ -288,6 +291,7 @@ class VOResult:
     refine: dict = field(default_factory=dict)
     map_segments: list = field(default_factory=list)
     found_again: int = 0
+    poses_streaming: np.ndarray | None = None
 
     @property
     def map_built(self) -> bool:
@@ -420,10 +424,14 @@ class VisualOdometry:
         for t in range(fr.n):
             if not fr.written(t):   # cannot happen; a pose for every frame regardless
                 self._write_absolute(t, FrameStatus.ROTATION_ONLY, 0, np.eye(4))
-        refine = {}
+        refine, streaming = {}, None
         if self.cfg.refine == "global" and self.map.keyframes.n >= 2:
+            # The sliding window's trajectory as vo.refine=none gives it (to the bit), kept
+            # beside the refined one: a benchmark reads both VOs from one run.
+            streaming = self._with_start_walked_back(self.map.all_poses())
             refine = self._refine_global()
-        self._walk_back_start()
+        for u, T in self._start_walk_back().items():
+            fr.backfill(u, T)
         n = fr.n
         poses = self.map.all_poses()
         kf = self.map.keyframes
@@ -438,9 +446,15 @@ class VisualOdometry:
         return VOResult(fr.timestamp[:n].copy(), poses, iskf, status, fr.inliers[:n].copy(),
                         dict(self.timings), dict(self.drops), float(focal), pts.reshape(-1, 3),
                         self.evidence.as_dict(TRANSLATION_RATIO, bool(spans)), float(self._rmse),
-                        refine, spans, self.found_again)
+                        refine, spans, self.found_again,
+                        poses.copy() if streaming is None else streaming)
 
-    def _walk_back_start(self) -> int:
+    def _with_start_walked_back(self, poses: np.ndarray) -> np.ndarray:
+        for u, T in self._start_walk_back().items():
+            poses[u] = T
+        return poses
+
+    def _start_walk_back(self) -> dict[int, np.ndarray]:
         """Frames before the first map that kept their rotation alone (the start waited for
         parallax, and their tracks were gone before it came, or they had nothing to track)
         get a translation: the first map's body velocity, walked back from the first frame
@@ -449,29 +463,27 @@ class VisualOdometry:
         each).
         A camera that only turned builds no map and is not touched; one whose first steps
         point every way (shaking in place) has no velocity to carry (typical_velocity).
-        Returns the number of frames filled in (status extrapolated)."""
+        Returns frame -> T_world_cam of the frames to fill in (status extrapolated); reads the
+        map, changes nothing."""
         kf, fr = self.map.keyframes, self.map.frames
         rows = np.flatnonzero(kf.segment[:kf.n] == 0)[:self.cfg.reinit_speed_keyframes + 1]
         if len(rows) < 2:
-            return 0
+            return {}
         velocity = typical_velocity(kf.frame[rows], kf.T_world_cam[rows], len(rows) - 1)
         if velocity is None:
-            return 0
+            return {}
         poses = self.map.all_poses()
-        filled = 0
+        fill = {}
         t = int(kf.frame[rows[0]])
         while t > 0:
             end = t
             while t > 0 and fr.status_of(t - 1) is FrameStatus.ROTATION_ONLY:
                 t -= 1
             if t < end:
-                for u, T in zip(range(t, end), walk_back(poses[end], poses[t:end, :3, :3], velocity)):
-                    fr.backfill(u, T)
-                    poses[u] = T
-                filled += end - t
+                fill.update(zip(range(t, end), walk_back(poses[end], poses[t:end, :3, :3], velocity)))
             else:
                 t -= 1
-        return filled
+        return fill
 
     # ----------------------------------------------------------------- small helpers
     def _write_absolute(self, t, status: FrameStatus, inliers: int, T_world_cam) -> None:

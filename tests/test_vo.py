@@ -204,7 +204,7 @@ def test_frames_before_the_first_map_walk_back_along_its_first_velocity(monkeypa
     usual = np.median(np.linalg.norm(np.diff(c[first:first + 10], axis=0), axis=1))
     steps = np.linalg.norm(np.diff(c[:first + 1], axis=0), axis=1)
     assert np.all(steps > 0.5 * usual) and np.all(steps < 2.0 * usual)
-    monkeypatch.setattr(VisualOdometry, "_walk_back_start", lambda self: 0)
+    monkeypatch.setattr(VisualOdometry, "_start_walk_back", lambda self: {})
     still = run()
     assert still.status[:first] == ["rotation-only"] * first   # the case still arises
     assert ate < 0.5 * early_ate(still, first + 11)
@@ -799,3 +799,25 @@ def test_the_start_seeds_its_own_grid_and_the_map_the_denser_one(monkeypatch):
     assert VOConfig(grid_size=14).start_grid == 14 and VOConfig().init_grid_size == 0
     with pytest.raises(ConfigError, match="'vo.init_grid_size'"):
         VOConfig(init_grid_size=1).validate()
+
+
+def test_the_result_keeps_the_sliding_windows_trajectory_of_a_refined_run_to_the_bit():
+    """One default run gives both VOs: ``poses_streaming`` is what vo.refine=none gives on the
+    same frames, exactly (benchmarks and the central-claim tests read both from one run), and
+    the refinement did move the poses (else the two would be the same array by accident)."""
+    from eval.vo_bench import render_sequence
+    from mona_vo.pipeline import PipelineConfig, estimate_trajectory
+
+    scene, frames, masks = render_sequence("one-large", 1, 16, 320, 136)
+    cfg = PipelineConfig()
+
+    def run(refine):
+        config = dataclasses.replace(cfg, vo=dataclasses.replace(cfg.vo, refine=refine))
+        return estimate_trajectory(frames, intrinsics=scene.intrinsics, masks=list(masks),
+                                   config=config).vo
+
+    refined, streaming = run("global"), run("none")
+    assert refined.refine and not streaming.refine
+    np.testing.assert_array_equal(refined.poses_streaming, streaming.poses)
+    np.testing.assert_array_equal(streaming.poses_streaming, streaming.poses)
+    assert np.abs(refined.poses[:, :3, 3] - streaming.poses[:, :3, 3]).max() > 1e-6
