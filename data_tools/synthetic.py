@@ -343,21 +343,30 @@ def _spectral_filters(size: int, slope: float = _SPECTRAL_SLOPE
                       ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per mip level k, the rfft-layout amplitude filters (size, size // 2 + 1) float32 of the
     luminance and chroma fields: f^-slope times a Gaussian cut-off at the level's wavelength."""
+    f, cutoffs = _cutoffs(size)
+    power = f ** -slope
+    power[0, 0] = 0.0
+    return [((power * broad).astype(np.float32), (power * chroma).astype(np.float32))
+            for broad, chroma in cutoffs]
+
+
+@lru_cache(maxsize=2)
+def _cutoffs(size: int) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """The frequency magnitude (size, size // 2 + 1) float64 (1 at DC) and, per mip level, the
+    Gaussian cut-offs of the luminance and chroma filters: the same for every slope, so the
+    newer presets' materials (one slope each) compute them once per size."""
     fy = np.fft.fftfreq(size)[:, None]
     fx = np.fft.rfftfreq(size)[None, :]
     f = np.hypot(fx, fy)
     f[0, 0] = 1.0
     fc = 1.0 / _FINEST_WAVELENGTH_TEXELS
-    power = f ** -slope
-    power[0, 0] = 0.0
     out = []
     k = 0
     while size >> k >= _MIN_LEVEL_SIZE:
         fck = fc / 2 ** k
-        out.append(((power * np.exp(-(f / fck) ** 2)).astype(np.float32),
-                    (power * np.exp(-(2.0 * f / fck) ** 2)).astype(np.float32)))
+        out.append((np.exp(-(f / fck) ** 2), np.exp(-(2.0 * f / fck) ** 2)))
         k += 1
-    return out
+    return f, out
 
 
 class _Texture:
