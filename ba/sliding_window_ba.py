@@ -142,15 +142,24 @@ def reprojection_residuals(poses: dict[int, np.ndarray], landmarks: dict[int, np
     """(M,) reprojection error in px of each observation (inf behind the camera, NaN when its
     landmark or keyframe is unknown)."""
     res = np.full(len(obs_kf), np.nan)
+    if not len(obs_kf) or not landmarks:
+        return res
+    # The landmarks as one sorted table, looked up for all observations at once.
+    ids = np.fromiter(landmarks, np.int64, len(landmarks))
+    order = np.argsort(ids)
+    ids = ids[order]
+    xyz = np.array(list(landmarks.values()), np.float64).reshape(-1, 3)[order]
+    obs_lm = np.asarray(obs_lm, np.int64)
+    row = np.minimum(np.searchsorted(ids, obs_lm), len(ids) - 1)
+    known = ids[row] == obs_lm
     for kf in np.unique(obs_kf):
         kf = int(kf)
         if kf not in poses:
             continue
-        sel = np.flatnonzero(obs_kf == kf)
-        sel = sel[[int(j) in landmarks for j in obs_lm[sel]]]
+        sel = np.flatnonzero((obs_kf == kf) & known)
         if not len(sel):
             continue
-        P = np.array([landmarks[int(j)] for j in obs_lm[sel]])
+        P = xyz[row[sel]]
         uv, z = reproject(poses[kf], P, intrinsics[kf], fx=focal, fy=focal)
         e = np.hypot(uv[:, 0] - obs_uv[sel, 0], uv[:, 1] - obs_uv[sel, 1])
         e[~(z > 1e-9)] = np.inf
@@ -177,9 +186,11 @@ def _degenerate_landmarks(problem: BAProblem, usable: np.ndarray, min_ratio: flo
     sel = np.flatnonzero(usable)
     if not len(sel) or min_ratio <= 0:
         return np.zeros(0, np.int64)
-    T = np.stack([problem.poses[int(k)] for k in problem.obs_kf[sel]])
-    P = np.stack([np.asarray(problem.landmarks[int(j)], np.float64) for j in problem.obs_lm[sel]])
-    z = camera_depths(T, P)
+    kf_ids = np.array(sorted(problem.poses), np.int64)
+    T = np.stack([problem.poses[int(k)] for k in kf_ids])[np.searchsorted(kf_ids, problem.obs_kf[sel])]
+    lm_ids = np.unique(problem.obs_lm[sel])
+    P = np.stack([np.asarray(problem.landmarks[int(j)], np.float64) for j in lm_ids])
+    z = camera_depths(T, P[np.searchsorted(lm_ids, problem.obs_lm[sel])])
     ahead = z[z > 0]
     if not len(ahead):
         return np.unique(problem.obs_lm[sel])

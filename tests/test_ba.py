@@ -288,3 +288,15 @@ def test_second_stage_rule_is_one_for_both_bundle_adjustments():
     other = BAConfig(robust_kernel="huber", final_kernel="cauchy", outlier_px=3.0)
     np.testing.assert_array_equal(second_stage(usable, np.array([0.5, 1.0, 2.0, 9.0]), other),
                                   [False, False, False, False])
+
+
+def test_symbol_keys_are_gtsams_keys_and_refuse_indices_out_of_range():
+    from gtsam.symbol_shorthand import L, X
+
+    from ba.factors import symbol_keys
+
+    idx = np.array([0, 1, 7, 123456, 2 ** 40])
+    assert symbol_keys("x", idx) == [X(int(i)) for i in idx]
+    assert symbol_keys("l", idx) == [L(int(i)) for i in idx]
+    with pytest.raises(ValueError, match="2\\^56"):
+        symbol_keys("l", np.array([-1]))
