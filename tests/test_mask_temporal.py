@@ -23,8 +23,8 @@ def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
     # Measured (one-large seed 0, 384 x 164, 24 frames; a car covers 28 % of the view), ATE % of
     # path over five draws of the VO's point grid (vo.grid_size 14-18; `python -m eval.vo_bench
     # --presets one-large --seeds 0 --variants none,mona,gt --frames 24 --size 384x164 --draws
-    # vo.grid_size=14,15,16,17,18 [--set vo.refine=none]`), medians without masks / with MONA /
-    # with the true masks:
+    # vo.grid_size=14,15,16,17,18`, which prints both VOs from the same runs), medians without
+    # masks / with MONA / with the true masks:
     # - the sliding-window VO (vo.refine=none), what the masks are for: 0.478 / 0.182 / 0.163,
     #   MONA / none 0.28-0.43 in every draw; the bound asks for most of that gain: masks that
     #   miss the car, or mask static ground that the VO then loses, fail it;
@@ -74,17 +74,16 @@ def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
 def test_mona_masks_lower_the_ate_over_scenes_and_draws():
     """The same claim over five scenes of the kind (generated one-large seeds 0-4, a car over a
     fifth to a third of the view, 384 x 164, 24 frames, true intrinsics), three draws of the
-    VO's point grid each on the sliding-window VO (`python -m eval.vo_bench --presets one-large
-    --seeds 0-4 --variants none,mona --frames 24 --size 384x164 --set vo.refine=none --draws
-    vo.grid_size=14,16,18`): one scene's median is one draw of scenes. Measured, geometric mean
-    over the scenes of MONA / no masks on the medians 0.78 (per scene 0.39 / 1.04 / 1.07 / 0.70 /
-    0.96; on seeds 5-12, never chosen on, 0.80, worst scene 1.19). Masks that miss the cars, or
-    mask static ground the VO then loses, give about 1. The default VO, with the global
-    refinement, on its own draw of each scene (grid 16): MONA / none 1.16 / 1.04 / 1.03 / 0.57 /
-    0.78, geometric mean 0.88 (over three draws 0.97, worst scene 1.05; seeds 5-12 0.96, worst
-    1.24), held to no harm. Until stop 54 the default read 0.52 over three draws: most of that
-    was the no-mask VO's wrong-way starts (seeds 1 and 3), mended since stop 55 by the start's
-    fit at its tracks' own noise (vo.init_fit_scales)."""
+    VO's point grid each (`python -m eval.vo_bench --presets one-large --seeds 0-4 --variants
+    none,mona --frames 24 --size 384x164 --draws vo.grid_size=14,16,18`, both VOs from the same
+    runs): one scene's median is one draw of scenes. Measured on the sliding-window VO,
+    geometric mean over the scenes of MONA / no masks on the medians 0.78 (per scene 0.39 / 1.04
+    / 1.07 / 0.70 / 0.96; on seeds 5-12, never chosen on, 0.80, worst scene 1.19). Masks that
+    miss the cars, or mask static ground the VO then loses, give about 1. The default VO, with
+    the global refinement: 0.97 (per scene 1.00 / 1.06 / 0.98 / 0.83 / 1.01; seeds 5-12 0.96,
+    worst 1.24), held to no harm. Until stop 54 the default read 0.52: most of that was the
+    no-mask VO's wrong-way starts (seeds 1 and 3), mended since stop 55 by the start's fit at
+    its tracks' own noise (vo.init_fit_scales)."""
     from eval.vo_bench import benchmark, draw_ratios
 
     # Each run gives both VOs: its refined trajectory and, before the refinement, the one
