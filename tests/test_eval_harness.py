@@ -365,6 +365,29 @@ def test_vo_bench_draws_read_a_variant_against_no_masks_over_each_sequences_draw
     assert len(err) == 2 and all("--draws" in e or "no_such_key" in e for e in err), err
 
 
+def test_vo_bench_draws_give_both_vos_from_the_same_runs(tmp_path, capsys):
+    """With the global refinement (the default) every row carries its sliding window's ATE
+    too, and --draws writes and prints the ratios of both; with vo.refine=none there is one VO
+    and one table, and its ATE is the refined runs' ate_pct_streaming."""
+    from eval.vo_bench import draw_ratios, main
+
+    args = ["--presets", "one-large", "--seeds", "0", "--variants", "none,gt", "--frames", "10",
+            "--size", "256x110", "--draws", "vo.grid_size=12,16"]
+    assert main(args + ["--out", str(tmp_path / "both.json")]) == 0
+    assert "before the global refinement" in capsys.readouterr().out
+    both = json.loads((tmp_path / "both.json").read_text())
+    rows = both["rows"]
+    assert any(r["ate_pct_streaming"] != r["ate_pct"] for r in rows), rows
+    (seq,) = both["draws_streaming"]["per_sequence"]
+    assert seq["median_ratio"] == pytest.approx(draw_ratios(rows, key="ate_pct_streaming")[0][0]["median_ratio"])
+    assert seq["median_ratio"] != pytest.approx(both["draws"]["per_sequence"][0]["median_ratio"])
+    assert main(args + ["--set", "vo.refine=none", "--out", str(tmp_path / "none.json")]) == 0
+    assert "before the global refinement" not in capsys.readouterr().out
+    one = json.loads((tmp_path / "none.json").read_text())
+    assert one["draws_streaming"]["per_sequence"] == []
+    assert [r["ate_pct"] for r in one["rows"]] == [r["ate_pct_streaming"] for r in rows]
+
+
 def test_vo_bench_runs_a_speed_preset_as_mona_vo_does_and_a_bad_set_is_one_line(monkeypatch, capsys):
     """`python -m eval.vo_bench --preset NAME`: the benchmark gets the configuration
     `mona-vo --preset NAME` builds (the preset, then --set), so a preset's figures need no copy
