@@ -142,16 +142,7 @@ def reprojection_residuals(poses: dict[int, np.ndarray], landmarks: dict[int, np
     """(M,) reprojection error in px of each observation (inf behind the camera, NaN when its
     landmark or keyframe is unknown)."""
     res = np.full(len(obs_kf), np.nan)
-    if not len(obs_kf) or not landmarks:
-        return res
-    # The landmarks as one sorted table, looked up for all observations at once.
-    ids = np.fromiter(landmarks, np.int64, len(landmarks))
-    order = np.argsort(ids)
-    ids = ids[order]
-    xyz = np.array(list(landmarks.values()), np.float64).reshape(-1, 3)[order]
-    obs_lm = np.asarray(obs_lm, np.int64)
-    row = np.minimum(np.searchsorted(ids, obs_lm), len(ids) - 1)
-    known = ids[row] == obs_lm
+    xyz, known = _gather(landmarks, obs_lm)
     for kf in np.unique(obs_kf):
         kf = int(kf)
         if kf not in poses:
@@ -159,12 +150,28 @@ def reprojection_residuals(poses: dict[int, np.ndarray], landmarks: dict[int, np
         sel = np.flatnonzero((obs_kf == kf) & known)
         if not len(sel):
             continue
-        P = xyz[row[sel]]
+        P = xyz[sel]
         uv, z = reproject(poses[kf], P, intrinsics[kf], fx=focal, fy=focal)
         e = np.hypot(uv[:, 0] - obs_uv[sel, 0], uv[:, 1] - obs_uv[sel, 1])
         e[~(z > 1e-9)] = np.inf
         res[sel] = e
     return res
+
+
+def _gather(table: dict[int, np.ndarray], keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``table[keys[i]]`` for all i at once, float64 (M, ...), and (M,) bool whether the key
+    is in the table (rows where it is not hold another entry's value). A window reads its
+    poses and landmarks per observation, thousands of times; one dict read each was most of
+    the Python the window spent outside GTSAM."""
+    keys = np.asarray(keys, np.int64).reshape(-1)
+    if not table:
+        return np.full((len(keys), 3), np.nan), np.zeros(len(keys), bool)
+    ids = np.fromiter(table, np.int64, len(table))
+    order = np.argsort(ids)
+    values = np.array(list(table.values()), np.float64)[order]
+    ids = ids[order]
+    row = np.minimum(np.searchsorted(ids, keys), len(ids) - 1)
+    return values[row], ids[row] == keys
 
 
 def _constrained(obs_kf, obs_lm, usable, free_kf, min_observations):
@@ -186,11 +193,8 @@ def _degenerate_landmarks(problem: BAProblem, usable: np.ndarray, min_ratio: flo
     sel = np.flatnonzero(usable)
     if not len(sel) or min_ratio <= 0:
         return np.zeros(0, np.int64)
-    kf_ids = np.array(sorted(problem.poses), np.int64)
-    T = np.stack([problem.poses[int(k)] for k in kf_ids])[np.searchsorted(kf_ids, problem.obs_kf[sel])]
-    lm_ids = np.unique(problem.obs_lm[sel])
-    P = np.stack([np.asarray(problem.landmarks[int(j)], np.float64) for j in lm_ids])
-    z = camera_depths(T, P[np.searchsorted(lm_ids, problem.obs_lm[sel])])
+    z = camera_depths(_gather(problem.poses, problem.obs_kf[sel])[0],
+                      _gather(problem.landmarks, problem.obs_lm[sel])[0])
     ahead = z[z > 0]
     if not len(ahead):
         return np.unique(problem.obs_lm[sel])
