@@ -29,10 +29,10 @@ import numpy as np
 from gtsam.symbol_shorthand import K, L, X
 
 from ba.factors import (add_distance_prior, add_focal_variable, add_projection_factors,
-                        distance_error, focal_prior_error, levenberg_marquardt, robust_pixel_noise,
-                        second_stage)
+                        distance_error, focal_prior_error, levenberg_marquardt, reprojection_errors,
+                        robust_pixel_noise, second_stage)
 from mona_vo.config import check_fields, setting
-from mona_vo.conventions import Intrinsics, camera_depths, pixels_in_mask, reproject
+from mona_vo.conventions import Intrinsics, camera_depths, pixels_in_mask
 
 __all__ = ["BAConfig", "BAProblem", "BAResult", "sliding_window_ba", "observations_in_masks",
            "reprojection_residuals", "focal_prior_error", "distance_error"]
@@ -140,21 +140,17 @@ def reprojection_residuals(poses: dict[int, np.ndarray], landmarks: dict[int, np
                            obs_lm: np.ndarray, obs_uv: np.ndarray,
                            focal: float | None = None) -> np.ndarray:
     """(M,) reprojection error in px of each observation (inf behind the camera, NaN when its
-    landmark or keyframe is unknown)."""
+    landmark or keyframe is unknown): :func:`ba.factors.reprojection_errors`, the global
+    refinement's, on the window's tables read per observation."""
+    obs_kf = np.asarray(obs_kf, np.int64).reshape(-1)
     res = np.full(len(obs_kf), np.nan)
-    xyz, known = _gather(landmarks, obs_lm)
-    for kf in np.unique(obs_kf):
-        kf = int(kf)
-        if kf not in poses:
-            continue
-        sel = np.flatnonzero((obs_kf == kf) & known)
-        if not len(sel):
-            continue
-        P = xyz[sel]
-        uv, z = reproject(poses[kf], P, intrinsics[kf], fx=focal, fy=focal)
-        e = np.hypot(uv[:, 0] - obs_uv[sel, 0], uv[:, 1] - obs_uv[sel, 1])
-        e[~(z > 1e-9)] = np.inf
-        res[sel] = e
+    T, have_kf = _gather(poses, obs_kf)
+    xyz, have_lm = _gather(landmarks, obs_lm)
+    cam, _ = _gather({k: (c.fx, c.fy, c.cx, c.cy) for k, c in intrinsics.items()}, obs_kf)
+    sel = have_kf & have_lm
+    if sel.any():
+        res[sel] = reprojection_errors(T[sel], xyz[sel], cam[sel],
+                                       np.asarray(obs_uv, np.float64).reshape(-1, 2)[sel], focal)
     return res
 
 

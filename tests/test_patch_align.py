@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 
 from mona_vo.geometry import homography_jacobians
-from mona_vo.patch_align import Anchors, align_patches, patch_templates
+from mona_vo.patch_align import Anchors, align_patches, patch_templates, sample_exact
 from mona_vo.tracking import LKTracker, Tracker
 
 
@@ -101,3 +101,23 @@ def test_the_lk_tracker_takes_corrections_and_tracks_on_from_them():
 
     assert Fixed().move(np.zeros(0, np.int64), np.zeros((0, 2))) is False
     assert not Fixed.takes_corrections and LKTracker.takes_corrections
+
+
+def test_exact_sampling_is_opencvs_sub_pixel_rectangle_and_replicates_the_border():
+    """sample_exact (patch_similarity's sampler) gives what cv2.getRectSubPix gives, to float32
+    rounding, also for patches that reach past the border, where cv2.remap's 1/32-pixel table
+    would be off by up to a sixty-fourth of a pixel's gradient."""
+    rng = np.random.default_rng(4)
+    image = cv2.GaussianBlur(rng.uniform(0, 255, (60, 80)).astype(np.float32), (0, 0), 1.0)
+    half = 3
+    o = np.arange(-half, half + 1, dtype=np.float64)
+    dv, du = (g.ravel() for g in np.meshgrid(o, o, indexing="ij"))
+    centres = np.vstack([rng.uniform(0, [79, 59], (40, 2)), [[0.3, 0.7], [78.9, 58.2], [-1.4, 30.5]]])
+    got = sample_exact(image, centres[:, :1] + du, centres[:, 1:] + dv)
+    want = np.stack([cv2.getRectSubPix(image, (7, 7), (float(x), float(y))).ravel()
+                     for x, y in centres])
+    assert np.abs(got - want).max() < 1e-3
+    table = cv2.remap(image, (centres[:, :1] + du).astype(np.float32),
+                      (centres[:, 1:] + dv).astype(np.float32), cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE)
+    assert np.abs(table - want).max() > 10 * np.abs(got - want).max()
