@@ -50,8 +50,8 @@ MIN_MATCHED_FRACTION = 0.9   # fewer posed frames matched to GT than this: a war
 COLUMNS = ("sequence", "variant", "status", "ate", "rpe_trans", "rpe_rot_deg", "ate_percent_of_path",
            "rot_rmse_deg", "rot_max_deg", "est_translation_extent",
            "frames", "frames_with_pose", "low_confidence", "n_matched", "scale", "seconds",
-           "frames_per_second", "camera", "focal_px", "global_shift_pct", "support_p10", "usable",
-           "warning")
+           "frames_per_second", "camera", "focal_px", "rolling_shutter_readout", "global_shift_pct",
+           "support_p10", "usable", "warning")
 
 
 def config_hash(config: PipelineConfig, seq: EvalSequence, variant: str, extra: dict) -> str:
@@ -86,7 +86,8 @@ def run_one(seq: EvalSequence, variant: str, config: PipelineConfig, run_dir: Pa
             write_tum_trajectory(run_dir / "trajectory.txt", vo.timestamps[posed], vo.poses[posed])
         row.update(frames=len(vo.timestamps), frames_with_pose=int(posed.sum()),
                    low_confidence=int(vo.low_confidence.sum()), focal_px=float(vo.focal),
-                   camera="given" if seq.intrinsics is not None else "estimated")
+                   camera="given" if seq.intrinsics is not None else "estimated",
+                   rolling_shutter_readout=(vo.refine.get("rolling_shutter") or {}).get("readout"))
         # The verdict batch would give the run, from the report run would write: beside the
         # metrics, every evaluated sequence is a check of the verdict against ground truth.
         summary = clip_summary(result, name=seq.name, masks=masks_kind or "none", config=run_config,

@@ -137,6 +137,10 @@ def run_variant(scene, frames, gt_masks, variant: str, config: PipelineConfig,
         "mask_j": float(np.mean(quality["mask_j"])) if quality["mask_j"] else nan,
         "mask_fp_pct": 100 * float(np.mean(quality["mask_fp"])) if quality["mask_fp"] else nan,
         "global_shift_pct": _nan_if_none(summary["global_shift_pct"]),
+        # The rolling shutter's readout the global refinement found (0: a global shutter,
+        # as the generator renders; NaN: not estimated).
+        "rolling_shutter_readout": float((result.vo.refine.get("rolling_shutter") or {})
+                                         .get("readout", nan)),
         "support_p10": _nan_if_none(summary["support_p10"]),
         "usable": verdict.usable, "verdict": verdict.text(),
     }

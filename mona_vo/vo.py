@@ -49,6 +49,7 @@ from mona_vo.errors import ConfigError
 from mona_vo.geometry import homography_jacobians, reprojection_residuals
 from mona_vo.patch_align import Anchors, align_patches
 from mona_vo.point_selection import seed_points
+from mona_vo.rolling_shutter import best_readout, corrected_pixels, turn_rates
 from mona_vo.tracking import LKTracker, Tracker, to_gray
 from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose, rotation_only,
                               rotation_parallax_deg, shared_inliers, tighten_relative_pose,
@@ -73,6 +74,9 @@ KEYFRAME, TRACKED, BOOTSTRAP, ROTATION_ONLY, INTERPOLATED, EXTRAPOLATED = (
     s.value for s in FrameStatus)
 LOW_CONFIDENCE = tuple(s.value for s in FrameStatus if s in _LOW)
 _OUT = np.uint8(LandmarkFlag.DYNAMIC | LandmarkFlag.REJECTED)   # never handed to a BA
+ROLLING_SHUTTER_MIN_GAIN = 0.01  # a readout is kept when it lowers the global refinement's
+                                 # capped squared error by at least this share (Bonn crowd: 0.13;
+                                 # the generator's global shutter: every readout raises it)
 REACQUIRE_HALF_PX = 10   # half side of the patch a lost landmark is looked for with: the
                          # tracker's 21 x 21 window
 _CHI2_5DOF_99 = 15.086   # scipy.stats.chi2.ppf(0.99, 5): the start pair's test (_densify_pair)
@@ -232,6 +236,17 @@ class VOConfig:
                                             # without intrinsics, the global refinement also
                                             # refines one shared focal length (and principal
                                             # point)
+    rolling_shutter: str = setting("estimate", choices=("off", "estimate", "given"))  # the
+                                            # global refinement sees each observation as the
+                                            # camera of its frame's middle row would have
+                                            # (mona_vo.rolling_shutter), with the readout it
+                                            # finds lowest in reprojection error (estimate, 0
+                                            # for a global shutter) or rolling_shutter_readout
+                                            # (given); the pipeline then runs the VO again on
+                                            # the frames unrolled (README, rolling shutter)
+    rolling_shutter_readout: float = setting(0.0, ge=0, le=1)  # the share of the frame
+                                            # interval the rows' readout takes, top row first
+                                            # (with rolling_shutter=given)
     ba: BAConfig = field(default_factory=BAConfig)  # bundle adjustment (window and global)
 
     @property
@@ -1171,7 +1186,18 @@ class VisualOdometry:
         # path). Where the clip does not constrain it, the prior keeps the start value.
         free = self.cfg.global_camera != "none" and not self._camera_known
         centres_before = graph.T_world_cam[:, :3, 3].copy()
+        rates, readout = None, 0.0
+        if self.cfg.rolling_shutter != "off":
+            rates = turn_rates(self.map.all_poses(), self.map.frame_segments())
+        if self.cfg.rolling_shutter == "given":
+            readout = self.cfg.rolling_shutter_readout
+            graph = self._unrolled(graph, rates, readout)
         res = refine_global(graph, self.cfg.ba, refine_focal=free)
+        shutter = {}
+        if self.cfg.rolling_shutter == "estimate":
+            readout, shutter, unrolled = self._estimate_readout(graph, rates, res, free)
+            if readout > 0:
+                graph, res = unrolled
         if free and self.cfg.global_camera == "focal+centre" and res.focal is not None:
             # The principal point from the focal-only solution: freed together from the start,
             # the two trade off and the focal length stays where it began.
@@ -1199,15 +1225,77 @@ class VisualOdometry:
         self.drops["ba_masked_landmarks"] += int(res.masked_landmarks)
         if np.isfinite(res.rmse_px):
             self._rmse = float(res.rmse_px)
-        reposed = self._repose_frames()
+        reposed = self._repose_frames(rates if readout > 0 else None, readout)
         self.timings["global_ba"] += time.perf_counter() - t0
         shift = keyframe_shift_pct(centres_before, kf.T_world_cam[:kf.n, :3, 3])
         return {"keyframes": int(kf.n), "landmarks": int(valid.sum()), "keyframe_shift_pct": shift,
                 "observations_used": int(res.n_observations_used),
                 "rmse_px": float(res.rmse_px), "seconds": float(res.seconds),
-                "frames_reposed": reposed, **focal}
+                "frames_reposed": reposed, **focal,
+                **({"rolling_shutter": {"readout": readout, **shutter}}
+                   if self.cfg.rolling_shutter != "off" else {})}
 
-    def _repose_frames(self) -> int:
+    def _unrolled(self, graph, rates: np.ndarray, readout: float):
+        """``graph`` with every observation moved to where its frame's middle-row camera saw it
+        (:func:`mona_vo.rolling_shutter.corrected_pixels`)."""
+        return dataclasses.replace(graph, obs_uv=corrected_pixels(
+            graph.obs_uv, rates[graph.kf_frames[graph.obs_kf]], readout,
+            graph.intrinsics[graph.obs_kf], self.height))
+
+    def _estimate_readout(self, graph, rates: np.ndarray, first, free: bool):
+        """The readout (share of the frame interval) under which the global refinement fits
+        its observations best, from the global-shutter solution ``first``: each candidate is
+        solved from it, and its cost is the mean squared reprojection error, capped at
+        ``vo.ba.outlier_px``, over the observations ``first`` used (a landmark the candidate
+        dropped counts at the cap). Readouts 0, 0.5 and 1.0 (and 1.25 when 1.0 fits better
+        than 0.5) are solved and a parabola's lowest point taken
+        (:func:`mona_vo.rolling_shutter.best_readout`); where 0.5 fits no better than 0, the
+        shutter is global and nothing else is solved. A readout is kept only when it
+        fits at least ``ROLLING_SHUTTER_MIN_GAIN`` better than 0. Returns (readout, what was
+        found for the report, (graph, result) of that readout)."""
+        from ba.global_ba import refine_global
+        from ba.factors import reprojection_errors
+
+        cap = self.cfg.ba.outlier_px
+        common = np.asarray(first.obs_used, bool)
+        order = np.argsort(graph.lm_ids)
+        row = order[np.minimum(np.searchsorted(graph.lm_ids, graph.obs_lm, sorter=order),
+                               len(order) - 1)]
+        warm = dataclasses.replace(graph, T_world_cam=first.T_world_cam, lm_xyz=np.where(
+            np.asarray(first.lm_valid, bool)[:, None], first.lm_xyz, graph.lm_xyz))
+
+        def cost(g, res) -> float:
+            intr = np.array(g.intrinsics, np.float64)
+            if res.focal is not None:
+                intr[:, :2] = res.focal
+            e = reprojection_errors(res.T_world_cam[g.obs_kf], res.lm_xyz[row], intr[g.obs_kf],
+                                    g.obs_uv)
+            e = np.where(np.asarray(res.lm_valid, bool)[row] & np.isfinite(e), e, cap)
+            return float(np.mean(np.minimum(e[common], cap) ** 2)) if common.any() else np.inf
+
+        solved = {0.0: (graph, first, cost(graph, first))}
+
+        def solve(r: float):
+            g = self._unrolled(warm, rates, r)
+            res = refine_global(g, self.cfg.ba, refine_focal=free)
+            solved[r] = (g, res, cost(g, res))
+
+        solve(0.5)
+        best = 0.0
+        if solved[0.5][2] < solved[0.0][2]:
+            solve(1.0)
+            if solved[1.0][2] < solved[0.5][2]:
+                solve(1.25)
+            tried = sorted(solved)
+            best = round(best_readout(tried, [solved[r][2] for r in tried]), 2)
+            if best not in solved:
+                solve(best)
+        if solved[best][2] > (1.0 - ROLLING_SHUTTER_MIN_GAIN) * solved[0.0][2]:
+            best = 0.0
+        found = {"cost_px2": {f"{r:g}": round(c, 5) for r, (_, _, c) in sorted(solved.items())}}
+        return best, found, solved[best][:2]
+
+    def _repose_frames(self, rates: np.ndarray | None = None, readout: float = 0.0) -> int:
         """Every tracked frame, and every frame posed by PnP when the first map was built
         (bootstrap), posed again on the refined map from where its keyframe took it. Moving a
         frame with its keyframe keeps the relative pose PnP found on the map as it was then, in
@@ -1222,7 +1310,11 @@ class VisualOdometry:
             if ref < 0 or have.sum() < self.cfg.pnp_min_inliers:
                 continue
             ps = self._pose_settings
-            T, _ = refine_pose(lm.positions(ids[have]), uv[have], kf.intrinsics(ref), m.pose_of(t),
+            intr = kf.intrinsics(ref)
+            if rates is not None:
+                uv = corrected_pixels(uv, np.broadcast_to(rates[t], (len(uv), 3)), readout,
+                                      np.array([intr.fx, intr.fy, intr.cx, intr.cy]), self.height)
+            T, _ = refine_pose(lm.positions(ids[have]), uv[have], intr, m.pose_of(t),
                                ps.guided_px, ps, ps.guided_min_share)
             if T is not None:
                 m.frames.repose(t, invert_pose(kf.T_world_cam[ref]) @ T)

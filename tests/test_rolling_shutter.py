@@ -1,0 +1,136 @@
+"""Rolling shutter (mona_vo/rolling_shutter.py): the model, the readout estimate of the global
+refinement, and the pipeline's pass over the unrolled frames."""
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mona_vo.conventions import make_pose
+from mona_vo.rolling_shutter import (best_readout, corrected_pixels, rotation_matrices,
+                                     rotation_vectors, turn_rates, unroll_maps)
+
+K = np.array([500.0, 500.0, 319.5, 239.5])
+
+
+def _turning(n, rate_deg, axis=(0.2, 1.0, 0.1)):
+    axis = np.asarray(axis) / np.linalg.norm(axis)
+    return np.stack([make_pose(Rotation.from_rotvec(np.radians(rate_deg) * i * axis).as_matrix(),
+                               np.array([0.01 * i, 0.0, 0.0])) for i in range(n)]), axis
+
+
+def test_turn_rates_are_the_cameras_own_turn_per_frame_and_stop_at_a_new_map():
+    T, axis = _turning(10, 0.8)
+    rates = turn_rates(T, np.zeros(10, np.int64))
+    np.testing.assert_allclose(rates, np.radians(0.8) * np.tile(axis, (10, 1)), atol=1e-9)
+    # A new map (segment) has its own world: no difference is taken across it, frames on no
+    # map get none, and a frame alone on its map gets none either.
+    seg = np.array([0, 0, 0, 0, 1, 1, 1, -1, -1, 2])
+    T2 = T.copy()
+    T2[4:7] = np.einsum("ij,njk->nik", make_pose(Rotation.from_rotvec([0, 2.0, 0]).as_matrix(),
+                                                 np.zeros(3)), T[4:7])
+    r2 = turn_rates(T2, seg)
+    np.testing.assert_allclose(r2[:7], rates[:7], atol=1e-9)
+    assert not r2[7:].any()
+    R = rotation_matrices(np.array([[0.1, -0.2, 0.3], [0.0, 0.0, 0.0]]))
+    np.testing.assert_allclose(rotation_vectors(R), [[0.1, -0.2, 0.3], [0, 0, 0]], atol=1e-12)
+
+
+def test_corrected_pixels_see_a_rolling_shutter_frame_as_its_middle_row_camera_does():
+    """Points seen by a camera whose rows are read one after the other while it turns: each
+    pixel's ray is the one of the camera at its row's time. The correction puts them where the
+    middle row's camera sees them, to a small fraction of the skew it removes."""
+    h, readout = 480, 0.9
+    rate = np.radians([0.3, 1.5, 0.2])          # per frame interval, camera frame
+    rng = np.random.default_rng(0)
+    P = np.c_[rng.uniform(-3, 3, (300, 2)), rng.uniform(4, 12, 300)]   # mid-row camera frame
+
+    def project(R):
+        q = P @ R                                  # R maps the row's camera to the middle one
+        return np.c_[K[0] * q[:, 0] / q[:, 2] + K[2], K[1] * q[:, 1] / q[:, 2] + K[3]]
+
+    global_ = project(np.eye(3))
+    rolled = global_.copy()
+    for _ in range(5):                             # the row a point is read at depends on it
+        s = readout * (rolled[:, 1] - (h - 1) / 2) / h
+        rolled = np.stack([project(rotation_matrices(si * rate)[0])[i]
+                           for i, si in enumerate(s)])
+    skew = np.linalg.norm(rolled - global_, axis=1)
+    back = corrected_pixels(rolled, np.tile(rate, (len(P), 1)), readout, K, h)
+    err = np.linalg.norm(back - global_, axis=1)
+    assert np.median(skew) > 2.0
+    assert err.max() < 0.01 * skew.max()
+    np.testing.assert_array_equal(corrected_pixels(rolled, np.tile(rate, (300, 1)), 0.0, K, h),
+                                  rolled)
+    # The image maps are the same correction, one homography per row.
+    mx, my = unroll_maps(rate, readout, K, 64, 48)
+    ys, xs = np.mgrid[0:48, 0:64]
+    grid = np.c_[xs.ravel(), ys.ravel()].astype(float)
+    want = corrected_pixels(grid, np.tile(-rate, (len(grid), 1)), readout, K, 48)
+    np.testing.assert_allclose(np.c_[mx.ravel(), my.ravel()], want, atol=1e-3)
+
+
+def test_best_readout_takes_the_parabolas_lowest_point_within_one_frame_interval():
+    r = np.array([0.0, 0.5, 1.0])
+    assert best_readout(r, (r - 0.7) ** 2 + 1.0) == pytest.approx(0.7)
+    assert best_readout(r, 1.0 + r) == 0.0                 # rising: a global shutter
+    r4 = np.array([0.0, 0.5, 1.0, 1.25])
+    assert best_readout(r4, (r4 - 0.95) ** 2) == pytest.approx(0.95)
+    assert best_readout(r4, (r4 - 1.1) ** 2) == 1.0
+    # Still falling beyond a whole frame interval, which no video's readout exceeds: the
+    # readout is absorbing something else.
+    assert best_readout(r4, (r4 - 3.0) ** 2) == 0.0
+
+
+def _rolled(scene, frames, masks, readout):
+    """The generated frames as a rolling shutter reading its rows over ``readout`` frame
+    intervals would have shown them (the scene's true turn rates)."""
+    from data_tools.frames import Frame
+
+    n = len(frames)
+    rates = turn_rates(scene.poses(), np.zeros(n, np.int64))
+    k = scene.intrinsics
+    h, w = frames[0].image.shape[:2]
+    out_f, out_m = [], []
+    for i, (f, m) in enumerate(zip(frames, masks)):
+        mx, my = unroll_maps(-rates[i], readout, np.array([k.fx, k.fy, k.cx, k.cy]), w, h)
+        out_f.append(Frame(f.index, f.timestamp, f.name,
+                           cv2.remap(f.image, mx, my, cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_REPLICATE)))
+        out_m.append(cv2.remap(m.astype(np.uint8), mx, my, cv2.INTER_NEAREST,
+                               borderMode=cv2.BORDER_REPLICATE).astype(bool))
+    return out_f, out_m
+
+
+def test_the_pipeline_finds_a_rolling_shutter_unrolls_the_frames_and_leaves_a_global_one(sequence):
+    """Generated static seed 0 (0.6 degrees of turn a frame) read by a rolling shutter over 0.8
+    of the frame interval: the global refinement finds the readout, the VO runs again on the
+    unrolled frames and the ATE falls back towards the global shutter's (measured 0.206 ->
+    0.084 % of path; 0.069 % for the same frames with a global shutter). The same frames with
+    a global shutter: the readout found is 0 and the run is the one without the estimate, to
+    the bit."""
+    from eval.metrics import Trajectory, score_trajectory
+    from mona_vo.config import apply_overrides
+    from mona_vo.pipeline import PipelineConfig, estimate_trajectory
+
+    scene, frames, masks = sequence("static", 0, 40, 640, 272)
+    gt = Trajectory.from_poses(scene.poses())
+
+    def run(fr, mode):
+        cfg = apply_overrides(PipelineConfig(), {"vo.rolling_shutter": mode})
+        res = estimate_trajectory(fr, intrinsics=scene.intrinsics, config=cfg)
+        est = Trajectory.from_poses(res.vo.poses)
+        return res.vo, score_trajectory(gt, est).ate_percent_of_path
+
+    found, found_ate = run(frames, "estimate")
+    plain, plain_ate = run(frames, "off")
+    assert found.refine["rolling_shutter"]["readout"] == 0.0
+    assert "unrolled_pass" not in found.refine
+    np.testing.assert_array_equal(found.poses, plain.poses)
+
+    rf, _ = _rolled(scene, frames, masks, 0.8)
+    skewed, skewed_ate = run(rf, "off")
+    unrolled, unrolled_ate = run(rf, "estimate")
+    assert unrolled.refine["unrolled_pass"].startswith("yes")
+    assert abs(unrolled.refine["rolling_shutter"]["readout"] - 0.8) < 0.25
+    assert unrolled_ate < 0.6 * skewed_ate
+    assert unrolled_ate < 1.5 * plain_ate
