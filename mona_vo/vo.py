@@ -1194,10 +1194,16 @@ class VisualOdometry:
             graph = self._unrolled(graph, rates, readout)
         res = refine_global(graph, self.cfg.ba, refine_focal=free)
         shutter = {}
-        if self.cfg.rolling_shutter == "estimate":
+        many = len(graph.kf_frames) > self.cfg.window_keyframes
+        if self.cfg.rolling_shutter == "estimate" and many:
             readout, shutter, unrolled = self._estimate_readout(graph, rates, res, free)
             if readout > 0:
                 graph, res = unrolled
+        elif self.cfg.rolling_shutter == "estimate":
+            # One window of keyframes or fewer: the refinement is the window's own problem, and
+            # a readout trades off against a few frames' poses (an 8-frame generated clip with
+            # an unmasked car, a global shutter, found one).
+            shutter = {"not_estimated": f"{len(graph.kf_frames)} keyframes, one window or fewer"}
         if free and self.cfg.global_camera == "focal+centre" and res.focal is not None:
             # The principal point from the focal-only solution: freed together from the start,
             # the two trade off and the focal length stays where it began.
