@@ -150,6 +150,7 @@ _SEVERAL_VISIBLE_FRAMES = 0.7        # fraction of frames showing each mover of 
 _FAST_VISIBLE_FRAMES = 0.5           # same for the mover of "fast-rotation"
 _MAX_TRIES = 400                     # proposals per mover before giving up
 _COVERAGE_GRID_WIDTH = 128           # pixels across of the coarse coverage grid
+_SHUTTER_BAND_ROWS = 4               # rows rendered at one instant under a rolling shutter
 
 _CAMERA_CLEARANCE = 1.2              # metres from a camera centre to any mover
 _STATIC_CLEARANCE = 1.5              # metres from the camera path to a static box (ground plane)
@@ -209,6 +210,8 @@ class SceneConfig:
     #                                 None: drawn (55-75 deg, mixed 40-90 deg)
     camera_path: str | None = None  # mixed only: a name in CAMERA_PATHS; None: drawn per seed
     effects: bool = True            # mixed only: image effects on RenderedFrame.image (False: none)
+    readout: float = 0.0            # rolling shutter: the share of the frame interval [0, 1] the
+    #                                 rows take to be read, top row first; 0: a global shutter
 
     def __post_init__(self):
         def bad(key, msg):
@@ -239,6 +242,11 @@ class SceneConfig:
                                    f"{', '.join(CAMERA_PATHS)}")
         if not isinstance(self.effects, (bool, np.bool_)):
             bad("effects", f"must be true or false, got {self.effects!r}")
+        if (isinstance(self.readout, (bool, np.bool_))
+                or not isinstance(self.readout, (int, float, np.integer, np.floating))
+                or not 0.0 <= float(self.readout) <= 1.0):
+            bad("readout", f"must be a number in [0, 1] (a share of the frame interval), "
+                           f"got {self.readout!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -937,7 +945,7 @@ class SyntheticScene:
         mover k), ray-cast without texturing (fast; equal to :meth:`render`'s)."""
         if not 0 <= i < len(self):
             raise IndexError(f"frame {i} out of range 0..{len(self) - 1}")
-        t, box, _ = _trace(self._boxes, i, self._R_wc[i], self._centres[i], self._grid)
+        t, box, _ = self._trace_frame(i)
         mover_of_box = np.array([b.mover for b in self._boxes], dtype=np.uint8)
         return t.astype(np.float32), mover_of_box[box]
 
@@ -945,11 +953,10 @@ class SyntheticScene:
         """Frame i (0 <= i < len(scene)) with its ground truth."""
         if not 0 <= i < len(self):
             raise IndexError(f"frame {i} out of range 0..{len(self) - 1}")
-        grid = self._grid
-        R_wc, c = self._R_wc[i], self._centres[i]
-        t, box, face = _trace(self._boxes, i, R_wc, c, grid)
+        t, box, face = self._trace_frame(i)
         face_id = (box.astype(np.int16) * 6 + face).astype(np.int16)
-        image = self._shade(i, t, face_id)
+        image = np.concatenate([self._shade(i, t[y0:y1], face_id[y0:y1], R_wc, c, grid)
+                                for y0, y1, R_wc, c, grid in self._row_bands(i)])
         mover_of_box = np.array([b.mover for b in self._boxes], dtype=np.uint8)
         object_id = mover_of_box[box]
         clean = image
@@ -959,6 +966,47 @@ class SyntheticScene:
                              mask=object_id > 0, object_id=object_id, face_id=face_id,
                              T_world_cam=self._poses[i].copy(), intrinsics=self.intrinsics,
                              image_clean=clean)
+
+    def _row_bands(self, i: int) -> list[tuple[int, int, np.ndarray, np.ndarray, _Grid]]:
+        """(first row, end row, R_wc, centre, grid of those rows) of each band of frame i's rows
+        read at one instant: the whole frame at frame i's pose under a global shutter; under a
+        rolling shutter (``SceneConfig.readout``) bands of 4 rows, each at the camera's pose when
+        its middle row was read, ``readout * (v - (H - 1) / 2) / H`` frame intervals after the
+        frame's middle row (rotation and centre interpolated between the frames on either side,
+        extrapolated at the ends). The frame's pose is its middle row's, as for the VO
+        (mona_vo.rolling_shutter). Movers stay at the frame's state: they are masked, and the
+        shutter matters for the static scene the camera's trajectory is read from."""
+        grid = self._grid
+        readout = float(self.config.readout)
+        if readout == 0.0:
+            return [(0, grid.height, self._R_wc[i], self._centres[i], grid)]
+        from scipy.spatial.transform import Rotation
+
+        n, H = len(self), grid.height
+        bands = []
+        for y0 in range(0, H, _SHUTTER_BAND_ROWS):
+            y1 = min(y0 + _SHUTTER_BAND_ROWS, H)
+            s = readout * ((y0 + y1 - 1) / 2.0 - (H - 1) / 2.0) / H
+            j = min(i + 1, n - 1) if s >= 0 else max(i - 1, 0)
+            if j == i:                      # the first or last frame: the step on its other side
+                j = i - 1 if s >= 0 else i + 1
+            step = (j - i) * s              # the fraction of the step from i to j, negative beyond i
+            R_i, R_j = self._R_wc[i], self._R_wc[j]
+            turn = Rotation.from_matrix(R_i.T @ R_j).as_rotvec() * step
+            R = R_i @ Rotation.from_rotvec(turn).as_matrix()
+            c = self._centres[i] + step * (self._centres[j] - self._centres[i])
+            band = _Grid(grid.width, y1 - y0,
+                         Intrinsics(grid.intr.fx, grid.intr.fy, grid.intr.cx, grid.intr.cy - y0),
+                         grid.a, grid.b[y0:y1])
+            bands.append((y0, y1, R, c, band))
+        return bands
+
+    def _trace_frame(self, i: int):
+        """:func:`_trace` of frame i, band by band of rows read at one instant (_row_bands)."""
+        parts = [_trace(self._boxes, i, R_wc, c, grid) for _, _, R_wc, c, grid in self._row_bands(i)]
+        if len(parts) == 1:
+            return parts[0]
+        return tuple(np.concatenate(p) for p in zip(*parts))
 
     # -- shading ------------------------------------------------------------------------------
 
@@ -970,10 +1018,9 @@ class SyntheticScene:
         return [_texture(self.config.seed, m, size, rgb, style, self._stream)
                 for m, (size, _, rgb, style) in enumerate(self._materials)]
 
-    def _shade(self, i: int, t: np.ndarray, face_id: np.ndarray) -> np.ndarray:
-        grid = self._grid
+    def _shade(self, i: int, t: np.ndarray, face_id: np.ndarray, R_wc: np.ndarray, c: np.ndarray,
+               grid: _Grid) -> np.ndarray:
         intr = grid.intr
-        R_wc, c = self._R_wc[i], self._centres[i]
         H, W = t.shape
         flat_id = face_id.ravel()
         flat_t = t.ravel()

@@ -42,12 +42,15 @@ from mona_vo.run import clip_summary
 
 
 def render_sequence(preset: str, seed: int, n_frames: int, width: int, height: int,
-                    effects: bool = True):
+                    effects: bool = True, readout: float = 0.0):
     """(scene, frames, gt masks) of one generated sequence, rendered once, kept in memory.
     ``effects=False``: the frames before the image effects (``mixed``: blur, noise, exposure,
-    JPEG), the same geometry, so what the effects cost can be read apart."""
+    JPEG), the same geometry, so what the effects cost can be read apart. ``readout``: rendered
+    by a rolling shutter reading its rows over this share of the frame interval
+    (``SceneConfig.readout``; 0 a global shutter)."""
     scene = SyntheticScene(SceneConfig(width=width, height=height, n_frames=n_frames,
-                                       preset=preset, seed=seed, effects=effects))
+                                       preset=preset, seed=seed, effects=effects,
+                                       readout=readout))
     return (scene, *frames_of(scene))
 
 
@@ -197,7 +200,7 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
               calib: str = "given", bars: str | None = None,
               frame_repeats: str | None = None, overlay: str | None = None,
               draws: list[dict[str, str]] | None = None, effects: bool = True,
-              lens=None) -> list[dict]:
+              lens=None, readout: float = 0.0) -> list[dict]:
     """One row per preset x seed x variant x draw x repeat. ``draws``: config overrides, one
     run of each per sequence and variant (:func:`eval.harness.parse_draws`; each row's ``draw``
     names its override, "" without draws): on a scene where one run is one draw of the VO's
@@ -212,7 +215,8 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
     an overlay of this kind (:func:`data_tools.overlays.add_overlay`); ``effects=False``:
     the ``mixed`` frames before their image effects (:func:`render_sequence`); ``lens``: a
     :class:`mona_vo.lens.Distortion` the frames (and true masks) are seen through, the true
-    camera then a LensIntrinsics (``calib="pinhole"`` leaves the lens out)."""
+    camera then a LensIntrinsics (``calib="pinhole"`` leaves the lens out); ``readout``: the
+    frames rendered by a rolling shutter (:func:`render_sequence`)."""
     config = config or PipelineConfig()
     if bars and "gt-detector" in variants:
         # The masker sees the picture inside the bars; the true boxes are the full frame's.
@@ -220,7 +224,8 @@ def benchmark(presets, seeds, variants, *, n_frames=50, width=1024, height=436,
     rows = []
     for preset in presets:
         for seed in seeds:
-            scene, frames, masks = render_sequence(preset, seed, n_frames, width, height, effects)
+            scene, frames, masks = render_sequence(preset, seed, n_frames, width, height, effects,
+                                                   readout)
             camera = None if lens is None else lens_camera(scene.intrinsics, lens)
             if isinstance(camera, LensIntrinsics):
                 und = Undistortion(camera)
@@ -551,6 +556,10 @@ def main(argv=None) -> int:
     ap.add_argument("--effects", choices=("on", "off"), default="on",
                     help="off: the `mixed` frames before their image effects (blur, noise, "
                          "exposure, JPEG), the same geometry (default on)")
+    ap.add_argument("--readout", type=float, default=0.0, metavar="SHARE",
+                    help="render the frames by a rolling shutter whose rows are read over this "
+                         "share of the frame interval, top row first (0-1; default 0, a global "
+                         "shutter, as the scenes' other presets)")
     ap.add_argument("--good-pct", type=float, default=1.0,
                     help="a trajectory within this ATE (%% of path) is good, for the verdict's "
                          "precision and recall (default 1)")
@@ -577,6 +586,9 @@ def main(argv=None) -> int:
         cfg = preset_config(args.preset, None, parse_set_options(args.set))
         draws = parse_draws(args.draws, cfg)
         lens = _parse_lens(args.lens) if args.lens else None
+        if not 0.0 <= args.readout <= 1.0:
+            raise EvalError(f"--readout: must be a share of the frame interval in [0, 1], "
+                            f"got {args.readout:g}")
     except MonaVoError as exc:
         print(f"python -m eval.vo_bench: error: {exc}", file=sys.stderr)
         return 1
@@ -584,7 +596,8 @@ def main(argv=None) -> int:
                      n_frames=args.frames, width=w, height=h, config=cfg,
                      on_row=lambda r: print(format_row(r), flush=True), repeats=max(1, args.repeats),
                      calib=args.calib, bars=args.bars, frame_repeats=args.frame_repeats,
-                     overlay=args.overlay, draws=draws, effects=args.effects == "on", lens=lens)
+                     overlay=args.overlay, draws=draws, effects=args.effects == "on", lens=lens,
+                     readout=args.readout)
     print()
     summary = summarize(rows)
     print(format_summary(summary))

@@ -389,6 +389,7 @@ def test_image_effects_leave_depth_and_masks_exact():
     (dict(hfov_deg=200.0), "hfov_deg"), (dict(hfov_deg="wide"), "hfov_deg"),
     (dict(camera_path="pan"), "camera_path"),
     (dict(preset="mixed", camera_path="orbit"), "camera_path"), (dict(effects=1), "effects"),
+    (dict(readout=1.5), "readout"), (dict(readout="fast"), "readout"), (dict(readout=True), "readout"),
 ])
 def test_scene_config_errors_are_one_line_naming_the_key(kw, key):
     with pytest.raises(SceneConfigError) as err:
@@ -486,3 +487,31 @@ def test_a_mover_crossing_the_second_one_placed_is_found_among_them():
     # placed ones compared the array-holding proposals with ==, which raised.
     scene = SyntheticScene(SceneConfig(width=160, height=68, n_frames=40, preset="mixed", seed=242))
     assert len(scene) == 40 and scene.path_length() > 0
+
+
+def test_a_rolling_shutter_render_is_the_global_one_seen_row_by_row():
+    """``SceneConfig.readout``: each band of rows is rendered at the camera's pose when it was
+    read. On a tripod pan (rotation only, so no parallax within the readout) that is exactly the
+    model the VO corrects (mona_vo.rolling_shutter): unrolled at the scene's true turn rates,
+    the rolled frame is the global-shutter frame again, to the sampling, while it differed by
+    pixels before. Depth, masks and the image come from the same rays."""
+    from mona_vo.rolling_shutter import turn_rates, unroll_maps
+
+    kw = dict(width=320, height=136, n_frames=6, preset="pan", seed=1)
+    plain = SyntheticScene(SceneConfig(**kw))
+    rolled = SyntheticScene(SceneConfig(**kw, readout=0.9))
+    np.testing.assert_array_equal(plain.poses(), rolled.poses())
+    rates = turn_rates(plain.poses(), np.zeros(6, np.int64))
+    assert np.degrees(np.linalg.norm(rates, axis=1)).min() > 0.5
+    k = plain.intrinsics
+    i = 3
+    g, r = plain.render(i), rolled.render(i)
+    mx, my = unroll_maps(rates[i], 0.9, np.array([k.fx, k.fy, k.cx, k.cy]), 320, 136)
+    back = cv2.remap(r.image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    inner = (slice(12, -12), slice(12, -12))
+    before = np.abs(r.image.astype(int) - g.image)[inner].mean()
+    after = np.abs(back.astype(int) - g.image)[inner].mean()
+    assert before > 4.0 and after < 0.25 * before, (before, after)
+    depth, ids = rolled.geometry(i)
+    np.testing.assert_array_equal(depth, r.depth)
+    np.testing.assert_array_equal(ids, r.object_id)
