@@ -97,6 +97,17 @@ class KeyframeGraph:
         if len(np.unique(self.lm_ids)) != n_lm:
             raise ValueError("KeyframeGraph.lm_ids are not unique")
 
+    def landmark_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) int64 row in ``lm_ids`` / ``lm_xyz`` of each observation's landmark (0 where it
+        has none) and (M,) bool whether it has one."""
+        n_lm = len(self.lm_ids)
+        if not n_lm:
+            return np.zeros(len(self.obs_kf), np.int64), np.zeros(len(self.obs_kf), bool)
+        order = np.argsort(self.lm_ids)
+        pos = np.minimum(np.searchsorted(self.lm_ids, self.obs_lm, sorter=order), n_lm - 1)
+        known = self.lm_ids[order[pos]] == self.obs_lm
+        return np.where(known, order[pos], 0).astype(np.int64), known
+
 
 @dataclass
 class GlobalResult:
@@ -259,11 +270,7 @@ def refine_global(graph: KeyframeGraph, config: BAConfig = BAConfig(), *,
     g = graph
     obs_kf = np.asarray(g.obs_kf, np.int64)
     n_lm = len(g.lm_ids)
-    order = np.argsort(g.lm_ids)
-    pos = np.searchsorted(g.lm_ids, g.obs_lm, sorter=order) if n_lm else np.zeros(len(obs_kf), np.int64)
-    pos = np.minimum(pos, max(n_lm - 1, 0))
-    known = (n_lm > 0) & (g.lm_ids[order[pos]] == g.obs_lm) if n_lm else np.zeros(len(obs_kf), bool)
-    lm_row = np.where(known, order[pos], 0).astype(np.int64)
+    lm_row, known = g.landmark_rows()
 
     masked_obs = np.asarray(g.obs_masked, bool) & known
     masked_lm = np.zeros(n_lm, bool)

@@ -20,6 +20,19 @@ no other sensor. Pure functions of arrays; the VO decides when (mona_vo.vo).
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def _neighbours(segment: np.ndarray):
+    """(frames, the frame before, the frame after) on the same map of each frame on one; a
+    map's ends are their own neighbour on one side."""
+    seg = np.asarray(segment, np.int64)
+    idx = np.flatnonzero(seg >= 0)
+    same_prev = np.r_[False, seg[idx[1:]] == seg[idx[:-1]]]
+    same_next = np.r_[seg[idx[:-1]] == seg[idx[1:]], False]
+    prev = np.where(same_prev, np.r_[idx[0:1], idx[:-1]], idx)
+    nxt = np.where(same_next, np.r_[idx[1:], idx[-1:]], idx)
+    return idx, prev, nxt
 
 
 def turn_rates(T_world_cam: np.ndarray, segment: np.ndarray) -> np.ndarray:
@@ -30,57 +43,48 @@ def turn_rates(T_world_cam: np.ndarray, segment: np.ndarray) -> np.ndarray:
     T_world_cam: (N, 4, 4) camera-to-world poses; segment: (N,) int64 the map each frame was
     posed on, -1 for frames on none (their rate is zero: their world is not the map's)."""
     T = np.asarray(T_world_cam, np.float64)
-    seg = np.asarray(segment, np.int64)
     out = np.zeros((len(T), 3))
-    idx = np.flatnonzero(seg >= 0)
-    if len(idx) < 2:
-        return out
-    same_prev = np.r_[False, seg[idx[1:]] == seg[idx[:-1]]]
-    same_next = np.r_[seg[idx[:-1]] == seg[idx[1:]], False]
-    prev = np.where(same_prev, np.r_[idx[0], idx[:-1]], idx)
-    nxt = np.where(same_next, np.r_[idx[1:], idx[-1]], idx)
-    R = T[:, :3, :3]
-    rel = np.einsum("nji,njk->nik", R[prev], R[nxt])           # R_prev^T R_next
+    idx, prev, nxt = _neighbours(segment)
     span = (nxt - prev).astype(np.float64)
     good = span > 0
-    out[idx[good]] = rotation_vectors(rel[good]) / span[good, None]
+    if not good.any():
+        return out
+    R = T[:, :3, :3]
+    rel = np.einsum("nji,njk->nik", R[prev[good]], R[nxt[good]])     # R_prev^T R_next
+    out[idx[good]] = Rotation.from_matrix(rel).as_rotvec() / span[good, None]
     return out
 
 
-def rotation_vectors(R: np.ndarray) -> np.ndarray:
-    """(N, 3) axis times angle of (N, 3, 3) rotation matrices (angles below 180 degrees)."""
-    R = np.asarray(R, np.float64)
-    cos = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.arccos(cos)
-    axis = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]],
-                    axis=1)
-    sin = np.sin(angle)
-    # angle / (2 sin angle) -> 1/2 as the angle goes to 0.
-    small = sin < 1e-9
-    factor = np.where(small, 0.5, angle / (2.0 * np.where(small, 1.0, sin)))
-    return axis * factor[:, None]
-
-
-def rotate(rotvec: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """(M, 3) vectors ``v`` (M, 3) turned by the rotation vectors ``rotvec`` (M, 3) (Rodrigues)."""
-    rotvec = np.asarray(rotvec, np.float64)
-    v = np.asarray(v, np.float64)
-    theta = np.linalg.norm(rotvec, axis=1)
-    small = theta < 1e-12
-    k = rotvec / np.where(small, 1.0, theta)[:, None]
-    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
-    kxv = np.cross(k, v)
-    kdv = np.sum(k * v, axis=1, keepdims=True)
-    out = v * c + kxv * s + k * kdv * (1.0 - c)
-    return np.where(small[:, None], v, out)
+def velocities(T_world_cam: np.ndarray, segment: np.ndarray) -> np.ndarray:
+    """(N, 3) camera centre's motion per frame interval of each frame, in that frame's camera
+    frame (map units), by the central difference :func:`turn_rates` takes (zero where it
+    takes none)."""
+    T = np.asarray(T_world_cam, np.float64)
+    out = np.zeros((len(T), 3))
+    idx, prev, nxt = _neighbours(segment)
+    span = (nxt - prev).astype(np.float64)
+    good = span > 0
+    if not good.any():
+        return out
+    step = (T[nxt[good], :3, 3] - T[prev[good], :3, 3]) / span[good, None]
+    out[idx[good]] = np.einsum("nji,nj->ni", T[idx[good], :3, :3], step)
+    return out
 
 
 def corrected_pixels(uv: np.ndarray, rates: np.ndarray, readout: float, intrinsics: np.ndarray,
-                     height: int) -> np.ndarray:
+                     height: int, velocity: np.ndarray | None = None,
+                     points_cam: np.ndarray | None = None) -> np.ndarray:
     """(M, 2) float64: where the camera of the middle row would have seen the rays seen at the
     (M, 2) pixels ``uv``, each in a frame turning at ``rates`` (M, 3) (:func:`turn_rates` of its
     frame), whose ``height`` rows are read over ``readout`` frame intervals, top row first.
-    ``intrinsics`` (M, 4) or (4,): fx, fy, cx, cy. ``readout`` 0 returns ``uv`` unchanged."""
+    ``intrinsics`` (M, 4) or (4,): fx, fy, cx, cy. ``readout`` 0 returns ``uv`` unchanged.
+
+    With ``velocity`` (M, 3) (:func:`velocities` of each frame) and ``points_cam`` (M, 3) (each
+    observed point in its frame's middle-row camera, from a solution), the camera's own motion
+    within the readout is taken out too: it moved each observation by the difference of the
+    point's projections from the moved and the middle-row centre, which depends on the point's
+    depth, so no image warp can undo it (a camera walking 10 cm a frame past points 5 m away,
+    read over 0.8 of the interval: about as much as its turn of 0.6 deg a frame)."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if readout == 0 or not len(uv):
         return uv.copy()
@@ -88,21 +92,19 @@ def corrected_pixels(uv: np.ndarray, rates: np.ndarray, readout: float, intrinsi
     fx, fy, cx, cy = K[:, 0], K[:, 1], K[:, 2], K[:, 3]
     s = readout * (uv[:, 1] - (height - 1) / 2.0) / height
     rays = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], axis=1)
-    turned = rotate(np.asarray(rates, np.float64).reshape(-1, 3) * s[:, None], rays)
+    turn = np.asarray(rates, np.float64).reshape(-1, 3) * s[:, None]
+    turned = Rotation.from_rotvec(turn).apply(rays)
     z = turned[:, 2]
-    return np.stack([fx * turned[:, 0] / z + cx, fy * turned[:, 1] / z + cy], axis=1)
-
-
-def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices of the (N, 3) rotation vectors (Rodrigues)."""
-    rotvec = np.asarray(rotvec, np.float64).reshape(-1, 3)
-    theta = np.linalg.norm(rotvec, axis=1)
-    k = rotvec / np.where(theta < 1e-12, 1.0, theta)[:, None]
-    cross = np.zeros((len(k), 3, 3))
-    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    cross -= cross.transpose(0, 2, 1)
-    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
-    return np.eye(3) + s * cross + (1.0 - c) * (cross @ cross)
+    out = np.stack([fx * turned[:, 0] / z + cx, fy * turned[:, 1] / z + cy], axis=1)
+    if velocity is None or points_cam is None:
+        return out
+    P = np.asarray(points_cam, np.float64).reshape(-1, 3)
+    moved = P - s[:, None] * np.asarray(velocity, np.float64).reshape(-1, 3)
+    ok = (P[:, 2] > 1e-9) & (moved[:, 2] > 1e-9)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shift = np.stack([fx * (moved[:, 0] / moved[:, 2] - P[:, 0] / P[:, 2]),
+                          fy * (moved[:, 1] / moved[:, 2] - P[:, 1] / P[:, 2])], axis=1)
+    return out - np.where(ok[:, None], shift, 0.0)
 
 
 def unroll_maps(rate: np.ndarray, readout: float, intrinsics: np.ndarray, width: int,
@@ -117,7 +119,8 @@ def unroll_maps(rate: np.ndarray, readout: float, intrinsics: np.ndarray, width:
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     v = np.arange(height, dtype=np.float64)
     s = readout * (v - (height - 1) / 2.0) / height
-    H = K @ rotation_matrices(-s[:, None] * np.asarray(rate, np.float64)[None]) @ np.linalg.inv(K)
+    turn = Rotation.from_rotvec(-s[:, None] * np.asarray(rate, np.float64)[None]).as_matrix()
+    H = K @ turn @ np.linalg.inv(K)
     u = np.arange(width, dtype=np.float64)[None]
     rest = H[:, :, 1] * v[:, None] + H[:, :, 2]                       # (h, 3)
     den = H[:, 2, 0, None] * u + rest[:, 2, None]

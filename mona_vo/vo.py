@@ -49,7 +49,7 @@ from mona_vo.errors import ConfigError
 from mona_vo.geometry import homography_jacobians, reprojection_residuals
 from mona_vo.patch_align import Anchors, align_patches
 from mona_vo.point_selection import seed_points
-from mona_vo.rolling_shutter import best_readout, corrected_pixels, turn_rates
+from mona_vo.rolling_shutter import best_readout, corrected_pixels, turn_rates, velocities
 from mona_vo.tracking import LKTracker, Tracker, to_gray
 from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose, rotation_only,
                               rotation_parallax_deg, shared_inliers, tighten_relative_pose,
@@ -247,6 +247,12 @@ class VOConfig:
     rolling_shutter_readout: float = setting(0.0, ge=0, le=1)  # the share of the frame
                                             # interval the rows' readout takes, top row first
                                             # (with rolling_shutter=given)
+    rolling_shutter_model: str = setting("rotation", choices=("rotation", "rotation+translation"))
+                                            # what moves the camera within the readout for
+                                            # the global refinement: its turn only, or its
+                                            # turn and its centre's motion too (each point
+                                            # moved at its depth in the refinement's start;
+                                            # the frames are unrolled by the turn alone)
     ba: BAConfig = field(default_factory=BAConfig)  # bundle adjustment (window and global)
 
     @property
@@ -1186,17 +1192,20 @@ class VisualOdometry:
         # path). Where the clip does not constrain it, the prior keeps the start value.
         free = self.cfg.global_camera != "none" and not self._camera_known
         centres_before = graph.T_world_cam[:, :3, 3].copy()
-        rates, readout = None, 0.0
+        rates, vel, readout = None, None, 0.0
         if self.cfg.rolling_shutter != "off":
-            rates = turn_rates(self.map.all_poses(), self.map.frame_segments())
+            poses, segments = self.map.all_poses(), self.map.frame_segments()
+            rates = turn_rates(poses, segments)
+            if self.cfg.rolling_shutter_model == "rotation+translation":
+                vel = velocities(poses, segments)
         if self.cfg.rolling_shutter == "given":
             readout = self.cfg.rolling_shutter_readout
-            graph = self._unrolled(graph, rates, readout)
+            graph = self._unrolled(graph, rates, readout, vel)
         res = refine_global(graph, self.cfg.ba, refine_focal=free)
         shutter = {}
         many = len(graph.kf_frames) > self.cfg.window_keyframes
         if self.cfg.rolling_shutter == "estimate" and many:
-            readout, shutter, unrolled = self._estimate_readout(graph, rates, res, free)
+            readout, shutter, unrolled = self._estimate_readout(graph, rates, res, free, vel)
             if readout > 0:
                 graph, res = unrolled
         elif self.cfg.rolling_shutter == "estimate":
@@ -1241,14 +1250,24 @@ class VisualOdometry:
                 **({"rolling_shutter": {"readout": readout, **shutter}}
                    if self.cfg.rolling_shutter != "off" else {})}
 
-    def _unrolled(self, graph, rates: np.ndarray, readout: float):
+    def _unrolled(self, graph, rates: np.ndarray, readout: float,
+                  velocity: np.ndarray | None = None):
         """``graph`` with every observation moved to where its frame's middle-row camera saw it
-        (:func:`mona_vo.rolling_shutter.corrected_pixels`)."""
+        (:func:`mona_vo.rolling_shutter.corrected_pixels`); with ``velocity`` (per frame) the
+        camera's motion within the readout taken out too, at the depths of ``graph``'s own
+        keyframe poses and landmarks."""
+        frames = graph.kf_frames[graph.obs_kf]
+        points = None
+        if velocity is not None:
+            row, _ = graph.landmark_rows()
+            T = graph.T_world_cam[graph.obs_kf]
+            points = np.einsum("nji,nj->ni", T[:, :3, :3], graph.lm_xyz[row] - T[:, :3, 3])
         return dataclasses.replace(graph, obs_uv=corrected_pixels(
-            graph.obs_uv, rates[graph.kf_frames[graph.obs_kf]], readout,
-            graph.intrinsics[graph.obs_kf], self.height))
+            graph.obs_uv, rates[frames], readout, graph.intrinsics[graph.obs_kf], self.height,
+            None if velocity is None else velocity[frames], points))
 
-    def _estimate_readout(self, graph, rates: np.ndarray, first, free: bool):
+    def _estimate_readout(self, graph, rates: np.ndarray, first, free: bool,
+                          velocity: np.ndarray | None = None):
         """The readout (share of the frame interval) under which the global refinement fits
         its observations best, from the global-shutter solution ``first``: each candidate is
         solved from it, and its cost is the mean squared reprojection error, capped at
@@ -1264,9 +1283,7 @@ class VisualOdometry:
 
         cap = self.cfg.ba.outlier_px
         common = np.asarray(first.obs_used, bool)
-        order = np.argsort(graph.lm_ids)
-        row = order[np.minimum(np.searchsorted(graph.lm_ids, graph.obs_lm, sorter=order),
-                               len(order) - 1)]
+        row, _ = graph.landmark_rows()
         warm = dataclasses.replace(graph, T_world_cam=first.T_world_cam, lm_xyz=np.where(
             np.asarray(first.lm_valid, bool)[:, None], first.lm_xyz, graph.lm_xyz))
 
@@ -1282,7 +1299,7 @@ class VisualOdometry:
         solved = {0.0: (graph, first, cost(graph, first))}
 
         def solve(r: float):
-            g = self._unrolled(warm, rates, r)
+            g = self._unrolled(warm, rates, r, velocity)
             res = refine_global(g, self.cfg.ba, refine_focal=free)
             solved[r] = (g, res, cost(g, res))
 
