@@ -1259,9 +1259,10 @@ class VisualOdometry:
         frames = graph.kf_frames[graph.obs_kf]
         points = None
         if velocity is not None:
-            row, _ = graph.landmark_rows()
+            row, known = graph.landmark_rows()
             T = graph.T_world_cam[graph.obs_kf]
             points = np.einsum("nji,nj->ni", T[:, :3, :3], graph.lm_xyz[row] - T[:, :3, 3])
+            points[~known] = np.nan                  # no depth: the turn alone
         return dataclasses.replace(graph, obs_uv=corrected_pixels(
             graph.obs_uv, rates[frames], readout, graph.intrinsics[graph.obs_kf], self.height,
             None if velocity is None else velocity[frames], points))

@@ -106,6 +106,46 @@ def test_the_cameras_motion_within_the_readout_is_taken_out_at_each_points_depth
     assert not velocities(T, np.full(5, -1)).any()
 
 
+def test_the_refinements_observations_are_unrolled_at_the_depths_of_its_own_solution():
+    """VisualOdometry._unrolled (vo.rolling_shutter_model): each observation of a keyframe
+    graph moved by its frame's turn and, given velocities, by the camera's motion at the depth
+    of the graph's own pose and landmark, the landmark found by id whatever the order (an
+    observation of an unknown landmark is left to the turn alone)."""
+    from ba.global_ba import KeyframeGraph
+    from mona_vo.conventions import Intrinsics
+    from mona_vo.vo import VisualOdometry, VOConfig
+
+    h, readout = 480, 0.8
+    T, _ = _turning(3, 0.6)
+    rates = turn_rates(T, np.zeros(3, np.int64))
+    vel = velocities(T, np.zeros(3, np.int64)) + np.array([0.0, 0.0, 0.08])
+    rng = np.random.default_rng(2)
+    X = np.c_[rng.uniform(-2, 2, (40, 2)), rng.uniform(2, 8, 40)]       # world = camera 0's
+    ids = rng.permutation(1000)[:40]
+    obs_kf = np.repeat([0, 1], 40)
+    obs_lm = np.r_[ids, ids[::-1]]
+    Xw = np.r_[X, X[::-1]]
+    P = np.einsum("nji,nj->ni", T[[0, 2]][obs_kf, :3, :3], Xw - T[[0, 2]][obs_kf, :3, 3])
+    truth = np.c_[K[0] * P[:, 0] / P[:, 2] + K[2], K[1] * P[:, 1] / P[:, 2] + K[3]]
+    rolled = truth.copy()
+    for _ in range(6):
+        s = readout * (rolled[:, 1] - (h - 1) / 2) / h
+        seen = P - s[:, None] * vel[[0, 2]][obs_kf]
+        q = np.stack([Rotation.from_rotvec(-si * r).apply(v)
+                      for si, r, v in zip(s, rates[[0, 2]][obs_kf], seen)])
+        rolled = np.c_[K[0] * q[:, 0] / q[:, 2] + K[2], K[1] * q[:, 1] / q[:, 2] + K[3]]
+    obs_lm[-1] = 5000                                  # a landmark the graph does not hold
+    graph = KeyframeGraph(np.array([0, 2]), T[[0, 2]], np.tile(K, (2, 1)), obs_kf, obs_lm,
+                          rolled, np.zeros(80, bool), ids, X)
+    vo = VisualOdometry(VOConfig(), 640, h, Intrinsics(*K))
+    both = vo._unrolled(graph, rates, readout, vel).obs_uv
+    turn = vo._unrolled(graph, rates, readout).obs_uv
+    err_both = np.linalg.norm(both - truth, axis=1)[:-1]
+    err_turn = np.linalg.norm(turn - truth, axis=1)[:-1]
+    assert err_turn.max() > 1.0 and err_both.max() < 0.02 * err_turn.max()
+    np.testing.assert_allclose(both[-1], turn[-1])
+
+
 def test_best_readout_takes_the_parabolas_lowest_point_within_one_frame_interval():
     r = np.array([0.0, 0.5, 1.0])
     assert best_readout(r, (r - 0.7) ** 2 + 1.0) == pytest.approx(0.7)
