@@ -23,16 +23,17 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 
-def _neighbours(segment: np.ndarray):
-    """(frames, the frame before, the frame after) on the same map of each frame on one; a
-    map's ends are their own neighbour on one side."""
+def _central_pairs(segment: np.ndarray):
+    """(frames, the frame before, the frame after, frames between) of each frame on a map that
+    has a neighbour on it: its neighbours on the same map, itself on one side at a map's end."""
     seg = np.asarray(segment, np.int64)
     idx = np.flatnonzero(seg >= 0)
     same_prev = np.r_[False, seg[idx[1:]] == seg[idx[:-1]]]
     same_next = np.r_[seg[idx[:-1]] == seg[idx[1:]], False]
     prev = np.where(same_prev, np.r_[idx[0:1], idx[:-1]], idx)
     nxt = np.where(same_next, np.r_[idx[1:], idx[-1:]], idx)
-    return idx, prev, nxt
+    good = nxt > prev
+    return idx[good], prev[good], nxt[good], (nxt - prev)[good].astype(np.float64)
 
 
 def turn_rates(T_world_cam: np.ndarray, segment: np.ndarray) -> np.ndarray:
@@ -42,16 +43,12 @@ def turn_rates(T_world_cam: np.ndarray, segment: np.ndarray) -> np.ndarray:
 
     T_world_cam: (N, 4, 4) camera-to-world poses; segment: (N,) int64 the map each frame was
     posed on, -1 for frames on none (their rate is zero: their world is not the map's)."""
-    T = np.asarray(T_world_cam, np.float64)
-    out = np.zeros((len(T), 3))
-    idx, prev, nxt = _neighbours(segment)
-    span = (nxt - prev).astype(np.float64)
-    good = span > 0
-    if not good.any():
-        return out
-    R = T[:, :3, :3]
-    rel = np.einsum("nji,njk->nik", R[prev[good]], R[nxt[good]])     # R_prev^T R_next
-    out[idx[good]] = Rotation.from_matrix(rel).as_rotvec() / span[good, None]
+    R = np.asarray(T_world_cam, np.float64)[:, :3, :3]
+    out = np.zeros((len(R), 3))
+    idx, prev, nxt, span = _central_pairs(segment)
+    if len(idx):
+        rel = np.einsum("nji,njk->nik", R[prev], R[nxt])             # R_prev^T R_next
+        out[idx] = Rotation.from_matrix(rel).as_rotvec() / span[:, None]
     return out
 
 
@@ -61,13 +58,10 @@ def velocities(T_world_cam: np.ndarray, segment: np.ndarray) -> np.ndarray:
     takes none)."""
     T = np.asarray(T_world_cam, np.float64)
     out = np.zeros((len(T), 3))
-    idx, prev, nxt = _neighbours(segment)
-    span = (nxt - prev).astype(np.float64)
-    good = span > 0
-    if not good.any():
-        return out
-    step = (T[nxt[good], :3, 3] - T[prev[good], :3, 3]) / span[good, None]
-    out[idx[good]] = np.einsum("nji,nj->ni", T[idx[good], :3, :3], step)
+    idx, prev, nxt, span = _central_pairs(segment)
+    if len(idx):
+        step = (T[nxt, :3, 3] - T[prev, :3, 3]) / span[:, None]
+        out[idx] = np.einsum("nji,nj->ni", T[idx, :3, :3], step)
     return out
 
 

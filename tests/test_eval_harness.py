@@ -361,8 +361,10 @@ def test_vo_bench_draws_read_a_variant_against_no_masks_over_each_sequences_draw
                if np.isfinite(p["ate_pct_base"]))
     assert main(["--presets", "one-large", "--seeds", "0", "--draws", "vo.grid_size"]) == 1
     assert main(["--presets", "one-large", "--seeds", "0", "--draws", "vo.no_such_key=1,2"]) == 1
+    assert main(["--presets", "one-large", "--seeds", "0", "--readout", "1.5"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and all("--draws" in e or "no_such_key" in e for e in err), err
+    assert len(err) == 3 and all("--draws" in e or "no_such_key" in e for e in err[:2]), err
+    assert "--readout" in err[2] and "1.5" in err[2], err
 
 
 def test_vo_bench_draws_give_both_vos_from_the_same_runs(tmp_path, capsys):
