@@ -123,12 +123,7 @@ def pytest_collection_modifyitems(config, items):
     issue 1386, open): nothing fails, the groups are simply spread over the workers. Measured
     here (stop 52): the Ray tests ran on both workers, each starting its own local cluster and
     its own 18-21 s batch. This sets the node id the way pytest 9.2 keeps it; when xdist's own
-    suffix took effect it does nothing.
-
-    Tests marked ``slow`` (each 13-60 s) are moved to the front, in their order: pytest-xdist
-    hands tests out in collection order, and when the slowest come last (test_vo.py is near the
-    end of the alphabet) one worker is left running one of them while the other has finished."""
-    items[:] = sorted(items, key=lambda item: item.get_closest_marker("slow") is None)
+    suffix took effect it does nothing."""
     if not getattr(config.option, "loadgroup", False):
         return
     try:

@@ -191,7 +191,6 @@ def test_without_intrinsics_the_vo_runs_again_from_the_refined_focal_length(sequ
     assert ate(twice) < 0.2, ate(twice)
 
 
-@pytest.mark.slow
 def test_a_creep_on_a_focal_guess_too_long_starts_again_and_a_pan_does_not():
     # Generated creep 302 (fresh seed; true field of view 73 deg): its first 40 frames move too
     # little for the focal estimate, so the run keeps the 60-degree guess, 27 % long. Every ray

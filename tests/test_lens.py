@@ -86,7 +86,6 @@ def _ate_pct(result, poses) -> float:
     return score_trajectory(Trajectory(t, poses), Trajectory(t, result.vo.poses)).ate_percent_of_path
 
 
-@pytest.mark.slow
 def test_a_run_given_the_lens_matches_the_pinhole_frames_and_ignoring_it_costs():
     """Generated `mixed` validation seed 105 seen through a lens like Bonn's (k1 0.04, k2 -0.1,
     p1 -0.0007, p2 -0.00014: 0.5 px at the median, 6 px at the corners): given the coefficients

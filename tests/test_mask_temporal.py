@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import pytest
 
 from data_tools.frames import open_frames
 from data_tools.masks_io import read_mask_png
@@ -72,7 +71,6 @@ def test_mona_masks_lower_the_ate_against_no_masks(small_scene):
     assert mona <= 1.1 * true, (mona, true)
 
 
-@pytest.mark.slow
 def test_mona_masks_lower_the_ate_over_scenes_and_draws():
     """The same claim over five scenes of the kind (generated one-large seeds 0-4, a car over a
     fifth to a third of the view, 384 x 164, 24 frames, true intrinsics), three draws of the

@@ -236,7 +236,6 @@ def test_davis_region_similarity_above_measured_floor(shared_subdir, seq):
     assert J > DAVIS_J_FLOOR
 
 
-@pytest.mark.slow
 def test_texture_ref_keeps_flat_sky_from_seeding_movers_on_davis_parkour(shared_subdir):
     """With ``evidence.texture_ref`` (the default since stop 49) a residual where the image is
     flat is weak evidence unless its connected motion holds dynamic points
@@ -329,7 +328,6 @@ def test_guided_refinement_moves_a_blocky_mask_edge_onto_the_image_edge():
         assert abs(cols.min() - 37) <= 1 and cols.max() == 79
 
 
-@pytest.mark.slow
 def test_seeded_evidence_finds_slow_movers_the_frame_threshold_misses_and_no_static_motion(render):
     """``masks.evidence.seeded_noise_factor`` (off by default): generated tuning scene mixed 4,
     a creeping camera and two people walking slowly across (0.1-0.5 px per frame against a

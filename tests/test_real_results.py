@@ -153,7 +153,6 @@ def _bonn_slow_start(exe, root, out, *extra):
     return json.loads(ev.stdout)["ate"], report["pose_support"]["inliers_median"]
 
 
-@pytest.mark.slow
 def test_a_slow_real_start_keeps_its_map_fed_with_landmarks(mona_vo_exe, shared_subdir, tmp_path):
     root = shared_subdir("bonn_crowd_long")
     ate, inliers = _bonn_slow_start(mona_vo_exe, root, tmp_path / "on")

@@ -743,7 +743,6 @@ def _angle_deg(R) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
-@pytest.mark.slow
 def test_very_long_video_keeps_the_vo_state_bounded(street):
     """660 frames through the VO: the window, its landmarks and the live tracks stay at window
     size, every keyframe keeps its observations compactly (for the global refinement), and the

@@ -178,7 +178,6 @@ def _rolled(scene, frames, masks, readout):
     return out_f, out_m
 
 
-@pytest.mark.slow
 def test_the_pipeline_finds_a_rolling_shutter_unrolls_the_frames_and_leaves_a_global_one(sequence):
     """Generated static seed 0 (0.6 degrees of turn a frame) read by a rolling shutter over 0.8
     of the frame interval: the global refinement finds the readout, the VO runs again on the

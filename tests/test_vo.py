@@ -116,7 +116,6 @@ def test_a_pure_pan_is_concluded_rotation_only_with_its_evidence():
     assert max(err) < 0.1
 
 
-@pytest.mark.slow
 def test_fast_rotation_under_motion_blur_keeps_tracking_with_weak_texture_points(sequence):
     """Generated 'mixed' seed 3 (a tuning seed): low-texture walls, motion blur, 3-4.5 deg per
     frame and a walking camera. With the fixed point score (1e-4) tracking was lost after frame
@@ -173,7 +172,6 @@ def test_frames_where_tracking_is_lost_carry_the_walk_on_until_a_new_map():
     assert m.ate_percent_of_path < 2.0
 
 
-@pytest.mark.slow
 def test_frames_before_the_first_map_walk_back_along_its_first_velocity(monkeypatch):
     """Generated 'mixed' seed 203 (a tuning seed): a fast turn while walking, 0.08 m per frame,
     opening on a near-blank wall. The start waits (until frame 9 on stop 47's host, 15 on stop
@@ -218,7 +216,6 @@ def _turn_error_deg(poses_est, poses_gt):
     return float(np.degrees(np.arccos(np.clip((np.trace(Re.T @ Rg) - 1) / 2, -1, 1))))
 
 
-@pytest.mark.slow
 def test_the_start_pair_refitted_on_many_matches_ends_a_slow_pans_rotation_bias(sequence):
     """Generated 'mixed' seeds 207 and 208 (tuning), true masks and intrinsics. 207, a slow pan
     drifting sideways: its start pair from the VO's 92 tracks was 1.2 deg off, and the whole
@@ -245,7 +242,6 @@ def test_the_start_pair_refitted_on_many_matches_ends_a_slow_pans_rotation_bias(
     assert err[208, 1000] < err[208, 0] + 0.05    # a right start is not replaced
 
 
-@pytest.mark.slow
 def test_a_map_is_not_started_on_a_pair_whose_translation_is_undetermined():
     """Generated 'mixed' seed 243 (a tuning seed): a walk turning 5 deg per frame past a street
     15 m deep. Frames 0 and 4 (19 deg apart, 0.8 deg of parallax) passed every other start
@@ -472,7 +468,6 @@ def test_the_start_pair_check_takes_no_refit_that_a_large_unmasked_mover_holds(r
     assert np.array_equal(shared, poses())
 
 
-@pytest.mark.slow
 def test_the_drift_test_drops_tracks_that_leave_their_static_point_and_lowers_the_error(monkeypatch):
     # A generated forward walk behind a car that keeps about the camera's pace (mixed seed 209,
     # a tuning seed), no masks. Some tracks fit the static map within a pixel or two after each
@@ -534,7 +529,6 @@ def test_the_drift_test_drops_tracks_that_leave_their_static_point_and_lowers_th
     assert ate_on < 0.7 * ate_off, (ate_on, ate_off)
 
 
-@pytest.mark.slow
 def test_the_global_refinement_moves_a_wrong_map_much_and_a_good_one_little(render):
     """The verdict's self-check, without ground truth: on a fast turn whose scale slid (mixed
     seed 3, 4.5 deg per frame, motion blur) the global refinement moves the keyframes by
@@ -634,7 +628,6 @@ def _passer_by(images, width, start=2, speed=18):
     return out
 
 
-@pytest.mark.slow
 def test_landmarks_hidden_by_a_passer_by_are_found_again_where_they_are_and_the_error_falls(monkeypatch):
     # Static seeds 0-3 (480 x 204, 40 frames, true intrinsics) with a grey band sweeping across:
     # without the search by projection every landmark it passes over is gone for good, and the
@@ -742,7 +735,6 @@ def test_the_window_holds_its_landmarks_views_from_the_keyframes_before_it_fixed
     assert all(set(p.poses) == set(w) for p, _, w in problems)
 
 
-@pytest.mark.slow
 def test_the_accurate_preset_lowers_the_error_on_static_scenes(sequence):
     """`--preset accurate` (24 x 24 new points once a map exists, 16 x 16 at the start) against
     the default (16 x 16) on generated static scenes, true intrinsics, global refinement:
