@@ -953,10 +953,11 @@ class SyntheticScene:
         """Frame i (0 <= i < len(scene)) with its ground truth."""
         if not 0 <= i < len(self):
             raise IndexError(f"frame {i} out of range 0..{len(self) - 1}")
-        t, box, face = self._trace_frame(i)
+        bands = self._row_bands(i)
+        t, box, face = self._trace_frame(i, bands)
         face_id = (box.astype(np.int16) * 6 + face).astype(np.int16)
         image = np.concatenate([self._shade(i, t[y0:y1], face_id[y0:y1], R_wc, c, grid)
-                                for y0, y1, R_wc, c, grid in self._row_bands(i)])
+                                for y0, y1, R_wc, c, grid in bands])
         mover_of_box = np.array([b.mover for b in self._boxes], dtype=np.uint8)
         object_id = mover_of_box[box]
         clean = image
@@ -1001,9 +1002,11 @@ class SyntheticScene:
             bands.append((y0, y1, R, c, band))
         return bands
 
-    def _trace_frame(self, i: int):
-        """:func:`_trace` of frame i, band by band of rows read at one instant (_row_bands)."""
-        parts = [_trace(self._boxes, i, R_wc, c, grid) for _, _, R_wc, c, grid in self._row_bands(i)]
+    def _trace_frame(self, i: int, bands: list | None = None):
+        """:func:`_trace` of frame i, band by band of rows read at one instant (``bands``, by
+        default :meth:`_row_bands`)."""
+        bands = self._row_bands(i) if bands is None else bands
+        parts = [_trace(self._boxes, i, R_wc, c, grid) for _, _, R_wc, c, grid in bands]
         if len(parts) == 1:
             return parts[0]
         return tuple(np.concatenate(p) for p in zip(*parts))
