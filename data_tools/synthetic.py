@@ -432,32 +432,41 @@ class _Texture:
             self.sizes.append(sk)
 
     def _lookup(self, k: int, tu: np.ndarray, tv: np.ndarray) -> np.ndarray:
-        """(n, 4) float32 bilinear lookup of level k at level-0 coordinates (n,) float32 in
-        [0, 2**20)."""
+        """(4, n) float64 bilinear lookup of level k at level-0 coordinates (n,) float32 in
+        [0, 2**20), channels first (R, G, B, 0)."""
         s = self.sizes[k]
         x = tu * np.float32(0.5 ** k)
         y = tv * np.float32(0.5 ** k)
         ix = x.astype(np.int32)            # floor, as x >= 0
         iy = y.astype(np.int32)
-        wx = (x - ix)[:, None]
-        wy = (y - iy)[:, None]
+        # float32 minus int32 is float64, exact: the blends run in float64 on whole texel values.
+        wx = x - ix
+        wy = y - iy
         ix1 = (ix + 1) & (s - 1)
         ix &= s - 1
         r1 = ((iy + 1) & (s - 1)) * s
         r0 = (iy & (s - 1)) * s
-        lev = self.levels[k]
-
-        def rgba(idx):
-            return lev[idx].view(np.uint8).reshape(-1, 4).astype(np.float32)
-
-        c00 = rgba(r0 + ix)
-        top = c00 + (rgba(r0 + ix1) - c00) * wx
-        c10 = rgba(r1 + ix)
-        bottom = c10 + (rgba(r1 + ix1) - c10) * wx
-        return top + (bottom - top) * wy
+        # One gather for the four corners; channels first, so that every blend below runs along
+        # the n samples rather than across four channels (numpy's inner loop would be 4 long).
+        n = tu.shape[0]
+        texels = np.take(self.levels[k], np.concatenate([r0 + ix, r0 + ix1, r1 + ix, r1 + ix1]))
+        c = np.empty((4, 4, n))            # (channel, corner, sample)
+        c.reshape(4, 4 * n)[...] = texels.view(np.uint8).reshape(4 * n, 4).T
+        c00, c01, c10, c11 = c[:, 0], c[:, 1], c[:, 2], c[:, 3]
+        c01 -= c00
+        c01 *= wx
+        c01 += c00                         # top row
+        c11 -= c10
+        c11 *= wx
+        c11 += c10                         # bottom row
+        c11 -= c01
+        c11 *= wy
+        c11 += c01
+        return c11
 
     def _trilinear(self, tu: np.ndarray, tv: np.ndarray, level: np.ndarray) -> np.ndarray:
-        """(n, 4) float32 lookup between the mip levels floor(level) and floor(level) + 1."""
+        """(4, n) lookup between the mip levels floor(level) and floor(level) + 1, channels
+        first."""
         n_levels = len(self.sizes)
         k0 = level.astype(np.int64)
         frac = (level - k0).astype(np.float32)
@@ -466,7 +475,7 @@ class _Texture:
         else:
             groups = [(k, np.flatnonzero(k0 == k)) for k in range(k0.min(initial=0),
                                                                    k0.max(initial=-1) + 1)]
-        out = np.empty((tu.shape[0], 4), dtype=np.float32)
+        out = np.empty((4, tu.shape[0]), dtype=np.float32)
         for k, sel in groups:
             su, sv, w = (tu, tv, frac) if sel is None else (tu[sel], tv[sel], frac[sel])
             if sel is not None and sel.size == 0:
@@ -474,13 +483,15 @@ class _Texture:
             col = self._lookup(k, su, sv)
             if k + 1 < n_levels:
                 blend = np.flatnonzero(w > 0)
-                if blend.size:
+                if blend.size == w.size:   # all of them: no gathers
+                    col += (self._lookup(k + 1, su, sv) - col) * w
+                elif blend.size:
                     upper = self._lookup(k + 1, su[blend], sv[blend])
-                    col[blend] += (upper - col[blend]) * w[blend, None]
+                    col[:, blend] += (upper - col[:, blend]) * w[blend]
             if sel is None:
                 out = col
             else:
-                out[sel] = col
+                out[:, sel] = col
         return out
 
     def sample(self, tu: np.ndarray, tv: np.ndarray, jac: tuple) -> np.ndarray:
@@ -516,13 +527,13 @@ class _Texture:
         margin = period * np.ceil(2.0 * sigma / period + 1.0)
         tu = (np.mod(tu, period) + margin).astype(np.float32)
         tv = (np.mod(tv, period) + margin).astype(np.float32)
-        out = np.empty((tu.shape[0], 4), dtype=np.float32)
+        out = np.empty((4, tu.shape[0]), dtype=np.float32)   # channels first
         for m in np.unique(half_taps):
             sel = np.flatnonzero(half_taps == m)
             if m == 0:
                 for c in range(0, sel.size, _CHUNK):
                     part = sel[c:c + _CHUNK]
-                    out[part] = self._trilinear(tu[part], tv[part], level[part])
+                    out[:, part] = self._trilinear(tu[part], tv[part], level[part])
                 continue
             phi = 0.5 * np.arctan2(2.0 * b[sel], a[sel] - d[sel])
             sg = sigma[sel]
@@ -536,9 +547,9 @@ class _Texture:
             taps = np.empty((su.size, 4), dtype=np.float32)
             for c in range(0, su.size, _CHUNK):   # chunks keep the temporaries in cache
                 taps[c:c + _CHUNK] = self._trilinear(su[c:c + _CHUNK], sv[c:c + _CHUNK],
-                                                     lev[c:c + _CHUNK])
-            out[sel] = np.tensordot(w, taps.reshape(2 * m + 1, sel.size, 4), axes=1)
-        return out[:, :3]
+                                                     lev[c:c + _CHUNK]).T
+            out[:, sel] = np.tensordot(w, taps.reshape(2 * m + 1, sel.size, 4), axes=1).T
+        return out[:3].T
 
 
 @lru_cache(maxsize=8)
@@ -600,11 +611,12 @@ def _pattern_field(style: _Style, size: int) -> np.ndarray:
     return (style.pattern_amp * field).astype(np.float32)
 
 
-@lru_cache(maxsize=16)
+@lru_cache(maxsize=64)
 def _texture(seed: int, index: int, size: int, rgb: tuple, style: _Style = _DEFAULT_STYLE,
              stream: int = -1) -> _Texture:
     """Texture of material ``index`` of the scenes of ``seed``. Cached: the street and static-box
-    materials of a seed are the same for every legacy preset and size (at most 16, about 90 MB).
+    materials of a seed are the same for every legacy preset and size (at most 64, under 400 MB;
+    a scene has up to 9, and 16 made the test suite build each one 1.5 times over).
     ``stream`` >= 0 separates the newer presets' noise from the legacy ones'."""
     rng = np.random.default_rng([seed, 4, index] if stream < 0 else [seed, 4, index, stream])
     if style == _DEFAULT_STYLE:
