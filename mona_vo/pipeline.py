@@ -399,7 +399,10 @@ def _unrolled_pass(source: Iterable, first: VOResult, vo_masks: list, size, came
                              borderMode=cv2.BORDER_REPLICATE).astype(bool)
         return image, mask
 
-    again = dataclasses.replace(vo_config or config.vo, rolling_shutter="off")
+    # The first estimate runs on skewed frames, whose tracks fit a global shutter better than
+    # the truth does, so it falls short (README, Rolling shutter, stop 58): the second pass
+    # looks for the readout left over.
+    again = dataclasses.replace(vo_config or config.vo, rolling_shutter="residual")
     start = camera if camera_known else Intrinsics(fx, fy, cx, cy)
     result, failed = _vo_again(source, vo_masks, size, start, again, config, timings, occluded,
                                _pass_progress(progress, "rolling shutter"),
@@ -411,7 +414,11 @@ def _unrolled_pass(source: Iterable, first: VOResult, vo_masks: list, size, came
         refine["unrolled_pass"] = f"no: {failed} ({why})"
         first.refine = refine
         return first
-    result.refine = {**(result.refine or {}), "rolling_shutter": refine["rolling_shutter"],
+    left = dict((result.refine or {}).get("rolling_shutter") or {})
+    residual = float(left.pop("readout", 0.0))
+    shutter = {**refine["rolling_shutter"], "readout": round(readout + residual, 4),
+               "first_estimate": readout, "residual": {"readout": residual, **left}}
+    result.refine = {**(result.refine or {}), "rolling_shutter": shutter,
                      "unrolled_pass": f"yes: {why}; the VO ran again on the unrolled frames",
                      "before_unrolling": refine}
     return result
@@ -508,8 +515,10 @@ class _Recorder:
         self.may_rerun = (stream.intrinsics is None and config.vo.refine == "global"
                           and config.vo.global_camera != "none" and stream.rereadable)
         # ... and again on the frames unrolled when the global refinement finds a rolling
-        # shutter (_unrolled_pass).
-        self.may_unroll = (config.vo.refine == "global" and config.vo.rolling_shutter != "off"
+        # shutter (_unrolled_pass; `residual` is that pass's own setting: its frames are
+        # unrolled already).
+        self.may_unroll = (config.vo.refine == "global"
+                           and config.vo.rolling_shutter in ("estimate", "given")
                            and stream.rereadable)
         self.vo_masks: list = []
 

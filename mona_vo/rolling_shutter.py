@@ -139,3 +139,17 @@ def best_readout(readouts: np.ndarray, costs: np.ndarray) -> float:
         return float(r[k])
     a, b, _ = np.polyfit(r[k - 1:k + 2], c[k - 1:k + 2], 2)
     return float(np.clip(-b / (2 * a), 0.0, 1.0))   # a > 0: c[k] is below its neighbours
+
+
+def best_residual(readouts: np.ndarray, costs: np.ndarray) -> float:
+    """The signed readout left over (share of the frame interval) where the parabola through the
+    lowest-cost (readout, cost) pair and its two neighbours is lowest, within the readouts
+    tried (increasing; they include 0); the lowest readout tried when it is at either end. For
+    frames unrolled already at a first estimate, which may have been too short or too long."""
+    r = np.asarray(readouts, np.float64)
+    c = np.asarray(costs, np.float64)
+    k = int(np.argmin(c))
+    if k == 0 or k == len(r) - 1:
+        return float(r[k])
+    a, b, _ = np.polyfit(r[k - 1:k + 2], c[k - 1:k + 2], 2)
+    return float(np.clip(-b / (2 * a), r[k - 1], r[k + 1]))

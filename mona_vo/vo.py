@@ -49,7 +49,8 @@ from mona_vo.errors import ConfigError
 from mona_vo.geometry import homography_jacobians, reprojection_residuals
 from mona_vo.patch_align import Anchors, align_patches
 from mona_vo.point_selection import seed_points
-from mona_vo.rolling_shutter import best_readout, corrected_pixels, turn_rates, velocities
+from mona_vo.rolling_shutter import (best_readout, best_residual, corrected_pixels,
+                                     turn_rates, velocities)
 from mona_vo.tracking import LKTracker, Tracker, to_gray
 from mona_vo.two_view import (homography_parallax_px, judge_pose, relative_pose, rotation_only,
                               rotation_parallax_deg, shared_inliers, tighten_relative_pose,
@@ -77,6 +78,11 @@ _OUT = np.uint8(LandmarkFlag.DYNAMIC | LandmarkFlag.REJECTED)   # never handed t
 ROLLING_SHUTTER_MIN_GAIN = 0.01  # a readout is kept when it lowers the global refinement's
                                  # capped squared error by at least this share (Bonn crowd: 0.13;
                                  # the generator's global shutter: every readout raises it)
+RESIDUAL_STEP = 0.1       # the readout left over on unrolled frames is searched in steps of
+RESIDUAL_MAX = 0.3        # this share of the frame interval, up to this far either way: the
+                          # first estimate falls short by 0.1-0.25 on the generator's rolled
+                          # frames (README, Rolling shutter, stop 58), and 0.5, the first
+                          # estimate's own step, fits worse than 0 there
 REACQUIRE_HALF_PX = 10   # half side of the patch a lost landmark is looked for with: the
                          # tracker's 21 x 21 window
 _CHI2_5DOF_99 = 15.086   # scipy.stats.chi2.ppf(0.99, 5): the start pair's test (_densify_pair)
@@ -236,14 +242,16 @@ class VOConfig:
                                             # without intrinsics, the global refinement also
                                             # refines one shared focal length (and principal
                                             # point)
-    rolling_shutter: str = setting("estimate", choices=("off", "estimate", "given"))  # the
-                                            # global refinement sees each observation as the
-                                            # camera of its frame's middle row would have
+    rolling_shutter: str = setting("estimate", choices=("off", "estimate", "given", "residual"))
+                                            # the global refinement sees each observation as
+                                            # the camera of its frame's middle row would have
                                             # (mona_vo.rolling_shutter), with the readout it
                                             # finds lowest in reprojection error (estimate, 0
                                             # for a global shutter) or rolling_shutter_readout
                                             # (given); the pipeline then runs the VO again on
-                                            # the frames unrolled (README, rolling shutter)
+                                            # the frames unrolled, where the readout left over,
+                                            # signed and small, is estimated (residual; README,
+                                            # rolling shutter)
     rolling_shutter_readout: float = setting(0.0, ge=0, le=1)  # the share of the frame
                                             # interval the rows' readout takes, top row first
                                             # (with rolling_shutter=given)
@@ -1208,7 +1216,11 @@ class VisualOdometry:
             readout, shutter, unrolled = self._estimate_readout(graph, rates, res, free, vel)
             if readout > 0:
                 graph, res = unrolled
-        elif self.cfg.rolling_shutter == "estimate":
+        elif self.cfg.rolling_shutter == "residual" and many:
+            readout, shutter, unrolled = self._estimate_residual(graph, rates, res, free, vel)
+            if readout != 0:
+                graph, res = unrolled
+        elif self.cfg.rolling_shutter in ("estimate", "residual"):
             # One window of keyframes or fewer: the refinement is the window's own problem, and
             # a readout trades off against a few frames' poses (an 8-frame generated clip with
             # an unmasked car, a global shutter, found one).
@@ -1240,7 +1252,7 @@ class VisualOdometry:
         self.drops["ba_masked_landmarks"] += int(res.masked_landmarks)
         if np.isfinite(res.rmse_px):
             self._rmse = float(res.rmse_px)
-        reposed = self._repose_frames(rates if readout > 0 else None, readout)
+        reposed = self._repose_frames(rates if readout != 0 else None, readout)
         self.timings["global_ba"] += time.perf_counter() - t0
         shift = keyframe_shift_pct(centres_before, kf.T_world_cam[:kf.n, :3, 3])
         return {"keyframes": int(kf.n), "landmarks": int(valid.sum()), "keyframe_shift_pct": shift,
@@ -1267,18 +1279,13 @@ class VisualOdometry:
             graph.obs_uv, rates[frames], readout, graph.intrinsics[graph.obs_kf], self.height,
             None if velocity is None else velocity[frames], points))
 
-    def _estimate_readout(self, graph, rates: np.ndarray, first, free: bool,
-                          velocity: np.ndarray | None = None):
-        """The readout (share of the frame interval) under which the global refinement fits
-        its observations best, from the global-shutter solution ``first``: each candidate is
-        solved from it, and its cost is the mean squared reprojection error, capped at
-        ``vo.ba.outlier_px``, over the observations ``first`` used (a landmark the candidate
-        dropped counts at the cap). Readouts 0, 0.5 and 1.0 (and 1.25 when 1.0 fits better
-        than 0.5) are solved and a parabola's lowest point taken
-        (:func:`mona_vo.rolling_shutter.best_readout`); where 0.5 fits no better than 0, the
-        shutter is global and nothing else is solved. A readout is kept only when it
-        fits at least ``ROLLING_SHUTTER_MIN_GAIN`` better than 0. Returns (readout, what was
-        found for the report, (graph, result) of that readout)."""
+    def _readout_solver(self, graph, rates: np.ndarray, first, free: bool,
+                        velocity: np.ndarray | None):
+        """(solve, solved) for the readout searches: ``solve(r)`` solves the global refinement
+        from the global-shutter solution ``first`` with the observations corrected for readout
+        r and records (graph, result, cost) in ``solved`` (readout 0: ``first`` itself). The
+        cost is the mean squared reprojection error, capped at ``vo.ba.outlier_px``, over the
+        observations ``first`` used (a landmark the candidate dropped counts at the cap)."""
         from ba.global_ba import refine_global
         from ba.factors import reprojection_errors
 
@@ -1299,25 +1306,62 @@ class VisualOdometry:
 
         solved = {0.0: (graph, first, cost(graph, first))}
 
-        def solve(r: float):
-            g = self._unrolled(warm, rates, r, velocity)
-            res = refine_global(g, self.cfg.ba, refine_focal=free)
-            solved[r] = (g, res, cost(g, res))
+        def solve(r: float) -> float:
+            if r not in solved:
+                g = self._unrolled(warm, rates, r, velocity)
+                res = refine_global(g, self.cfg.ba, refine_focal=free)
+                solved[r] = (g, res, cost(g, res))
+            return solved[r][2]
 
-        solve(0.5)
-        best = 0.0
-        if solved[0.5][2] < solved[0.0][2]:
-            solve(1.0)
-            if solved[1.0][2] < solved[0.5][2]:
-                solve(1.25)
-            tried = sorted(solved)
-            best = round(best_readout(tried, [solved[r][2] for r in tried]), 2)
-            if best not in solved:
-                solve(best)
+        return solve, solved
+
+    @staticmethod
+    def _readout_found(best: float, solved: dict):
+        """(readout, what was found for the report, (graph, result) of that readout): ``best``
+        kept only when it fits at least ``ROLLING_SHUTTER_MIN_GAIN`` better than 0."""
         if solved[best][2] > (1.0 - ROLLING_SHUTTER_MIN_GAIN) * solved[0.0][2]:
             best = 0.0
         found = {"cost_px2": {f"{r:g}": round(c, 5) for r, (_, _, c) in sorted(solved.items())}}
         return best, found, solved[best][:2]
+
+    def _estimate_readout(self, graph, rates: np.ndarray, first, free: bool,
+                          velocity: np.ndarray | None = None):
+        """The readout (share of the frame interval) under which the global refinement fits
+        its observations best, from the global-shutter solution ``first``
+        (:meth:`_readout_solver`). Readouts 0, 0.5 and 1.0 (and 1.25 when 1.0 fits better
+        than 0.5) are solved and a parabola's lowest point taken
+        (:func:`mona_vo.rolling_shutter.best_readout`); where 0.5 fits no better than 0, the
+        shutter is global and nothing else is solved. Returns :meth:`_readout_found`'s
+        triple."""
+        solve, solved = self._readout_solver(graph, rates, first, free, velocity)
+        best = 0.0
+        if solve(0.5) < solved[0.0][2]:
+            if solve(1.0) < solved[0.5][2]:
+                solve(1.25)
+            tried = sorted(solved)
+            best = round(best_readout(tried, [solved[r][2] for r in tried]), 2)
+            solve(best)
+        return self._readout_found(best, solved)
+
+    def _estimate_residual(self, graph, rates: np.ndarray, first, free: bool,
+                           velocity: np.ndarray | None = None):
+        """The readout left over on frames unrolled already at a first estimate, signed (a
+        first estimate too long leaves a negative one): readouts of +-``RESIDUAL_STEP`` are
+        solved, then further steps the way that fits better while the cost falls, up to
+        ``RESIDUAL_MAX``, and a parabola's lowest point taken
+        (:func:`mona_vo.rolling_shutter.best_residual`). Returns :meth:`_readout_found`'s
+        triple."""
+        solve, solved = self._readout_solver(graph, rates, first, free, velocity)
+        way = RESIDUAL_STEP if solve(RESIDUAL_STEP) <= solve(-RESIDUAL_STEP) else -RESIDUAL_STEP
+        best = 0.0
+        if solved[way][2] < solved[0.0][2]:
+            r = way
+            while abs(r) < RESIDUAL_MAX - 1e-9 and solve(round(r + way, 2)) < solved[r][2]:
+                r = round(r + way, 2)
+            tried = sorted(solved)
+            best = round(best_residual(tried, [solved[t][2] for t in tried]), 2)
+            solve(best)
+        return self._readout_found(best, solved)
 
     def _repose_frames(self, rates: np.ndarray | None = None, readout: float = 0.0) -> int:
         """Every tracked frame, and every frame posed by PnP when the first map was built
