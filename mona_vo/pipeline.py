@@ -402,7 +402,8 @@ def _unrolled_pass(source: Iterable, first: VOResult, vo_masks: list, size, came
     # The first estimate runs on skewed frames, whose tracks fit a global shutter better than
     # the truth does, so it falls short (README, Rolling shutter, stop 58): the second pass
     # looks for the readout left over.
-    again = dataclasses.replace(vo_config or config.vo, rolling_shutter="residual")
+    again = dataclasses.replace(vo_config or config.vo, rolling_shutter="residual",
+                                rolling_shutter_readout=readout)
     start = camera if camera_known else Intrinsics(fx, fy, cx, cy)
     result, failed = _vo_again(source, vo_masks, size, start, again, config, timings, occluded,
                                _pass_progress(progress, "rolling shutter"),

@@ -254,7 +254,9 @@ class VOConfig:
                                             # rolling shutter)
     rolling_shutter_readout: float = setting(0.0, ge=0, le=1)  # the share of the frame
                                             # interval the rows' readout takes, top row first
-                                            # (with rolling_shutter=given)
+                                            # (with rolling_shutter=given; with residual, the
+                                            # readout the frames were unrolled at already: what
+                                            # is left keeps the sum within [0, 1])
     rolling_shutter_model: str = setting("rotation", choices=("rotation", "rotation+translation"))
                                             # what moves the camera within the readout for
                                             # the global refinement: its turn only, or its
@@ -1345,22 +1347,31 @@ class VisualOdometry:
 
     def _estimate_residual(self, graph, rates: np.ndarray, first, free: bool,
                            velocity: np.ndarray | None = None):
-        """The readout left over on frames unrolled already at a first estimate, signed (a
-        first estimate too long leaves a negative one): readouts of +-``RESIDUAL_STEP`` are
-        solved, then further steps the way that fits better while the cost falls, up to
-        ``RESIDUAL_MAX``, and a parabola's lowest point taken
-        (:func:`mona_vo.rolling_shutter.best_residual`). Returns :meth:`_readout_found`'s
-        triple."""
+        """The readout left over on frames unrolled already at a first estimate
+        (``vo.rolling_shutter_readout``), signed (a first estimate too long leaves a negative
+        one): readouts of +-``RESIDUAL_STEP`` are solved, then further steps the way that fits
+        better while the cost falls, up to ``RESIDUAL_MAX`` and never beyond a whole readout
+        of 0 or 1 (a video reads its rows within one frame interval), and a parabola's lowest
+        point taken (:func:`mona_vo.rolling_shutter.best_residual`). Returns
+        :meth:`_readout_found`'s triple."""
+        done = self.cfg.rolling_shutter_readout
+        lo, hi = max(-RESIDUAL_MAX, -done), min(RESIDUAL_MAX, 1.0 - done)
+
+        def step(r: float, way: float) -> float:
+            return round(float(np.clip(r + way, lo, hi)), 2)
+
         solve, solved = self._readout_solver(graph, rates, first, free, velocity)
-        way = RESIDUAL_STEP if solve(RESIDUAL_STEP) <= solve(-RESIDUAL_STEP) else -RESIDUAL_STEP
+        ways = [w for w in (RESIDUAL_STEP, -RESIDUAL_STEP) if step(0.0, w) != 0.0]
         best = 0.0
-        if solved[way][2] < solved[0.0][2]:
-            r = way
-            while abs(r) < RESIDUAL_MAX - 1e-9 and solve(round(r + way, 2)) < solved[r][2]:
-                r = round(r + way, 2)
-            tried = sorted(solved)
-            best = round(best_residual(tried, [solved[t][2] for t in tried]), 2)
-            solve(best)
+        if ways:
+            way = min(ways, key=lambda w: solve(step(0.0, w)))
+            r = step(0.0, way)
+            if solved[r][2] < solved[0.0][2]:
+                while step(r, way) != r and solve(step(r, way)) < solved[r][2]:
+                    r = step(r, way)
+                tried = sorted(solved)
+                best = round(best_residual(tried, [solved[t][2] for t in tried]), 2)
+                solve(best)
         return self._readout_found(best, solved)
 
     def _repose_frames(self, rates: np.ndarray | None = None, readout: float = 0.0) -> int:
