@@ -137,8 +137,7 @@ def best_readout(readouts: np.ndarray, costs: np.ndarray) -> float:
         return 0.0
     if k == len(r) - 1:
         return float(r[k])
-    a, b, _ = np.polyfit(r[k - 1:k + 2], c[k - 1:k + 2], 2)
-    return float(np.clip(-b / (2 * a), 0.0, 1.0))   # a > 0: c[k] is below its neighbours
+    return float(np.clip(_vertex(r, c, k), 0.0, 1.0))
 
 
 def best_residual(readouts: np.ndarray, costs: np.ndarray) -> float:
@@ -151,5 +150,11 @@ def best_residual(readouts: np.ndarray, costs: np.ndarray) -> float:
     k = int(np.argmin(c))
     if k == 0 or k == len(r) - 1:
         return float(r[k])
+    return float(np.clip(_vertex(r, c, k), r[k - 1], r[k + 1]))
+
+
+def _vertex(r: np.ndarray, c: np.ndarray, k: int) -> float:
+    """The lowest point of the parabola through (r, c) at k - 1, k and k + 1, where c[k] is
+    below its neighbours (so the parabola opens upwards)."""
     a, b, _ = np.polyfit(r[k - 1:k + 2], c[k - 1:k + 2], 2)
-    return float(np.clip(-b / (2 * a), r[k - 1], r[k + 1]))
+    return -b / (2 * a)
