@@ -171,24 +171,19 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                         max_iterations: int, *, quiet: bool = False,
                         relative_tol: float = 1e-4,
                         diagonal_damping: bool = False,
-                        adaptive_lambda: bool = False,
                         ordering: list[int] | None = None) -> tuple[gtsam.Values, int]:
     """Solve with Levenberg-Marquardt; returns (values, iterations). ``quiet`` silences the
     cheirality lines of GeneralSFMFactor2 (see :func:`quiet_native_stdout`).
     ``diagonal_damping`` damps by lambda * diag(J^T J) instead of lambda * I (as Ceres does): the
     step then scales with each variable's own units (rad, m, px of focal length), which a whole
     trajectory with a focal length far from its guess needs; with lambda * I the first steps
-    overshoot and lambda hits its bound before any step is accepted. ``adaptive_lambda``: after
-    an accepted step lambda falls by the step's gain ratio (Nielsen's rule, Ceres's and GTSAM's
-    ``useFixedLambdaFactor=False``) rather than tenfold, so a long solve does not alternate a
-    rejected step (a full linear solve) with each accepted one. ``ordering``: elimination
+    overshoot and lambda hits its bound before any step is accepted. ``ordering``: elimination
     order of the keys (landmarks first is the Schur complement of BA: each point is eliminated
     alone, leaving the small camera system), else GTSAM's COLAMD."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(int(max_iterations))
     params.setRelativeErrorTol(relative_tol)
     params.setDiagonalDamping(bool(diagonal_damping))
-    params.setUseFixedLambdaFactor(not adaptive_lambda)
     if ordering is not None:
         order = gtsam.Ordering()
         for key in ordering:

@@ -50,11 +50,7 @@ from ba.sliding_window_ba import BAConfig
 log = logging.getLogger(__name__)
 
 MIN_POSE_OBSERVATIONS = 6   # a pose has 6 unknowns; with fewer points it is held, not solved
-# Stop when an iteration lowers the cost by less than this share. At 1e-5 half of a long solve's
-# iterations moved the cost by under 1e-4 in all; with Nielsen's damping (levenberg_marquardt's
-# adaptive_lambda) the nine solves of a Bonn run (450 frames, no masks) took 21.6 s instead of
-# 47.4, their RMSE within 0.5 % of before, lower in eight of nine (README, Speed, stop 60).
-RELATIVE_TOL = 1e-4
+RELATIVE_TOL = 1e-5         # stop when an iteration lowers the cost by less than this share
 # Sigma of the scale prior as a share of its distance. The reprojection cost does not change with
 # the world's scale, so at the optimum the prior holds exactly whatever its sigma; a stiff one
 # (gauge_sigma) would only make every Gauss-Newton step fail on the distance's curvature.
@@ -250,7 +246,6 @@ def _solve(g: KeyframeGraph, cfg: BAConfig, usable, lm_row, held, anchors, T0, P
     ordering = [L(int(j)) for j in lm_used] + [X(int(k)) for k in kf_used] + ([K(0)] if refine_focal else [])
     result, iterations = levenberg_marquardt(graph, values, max_iterations, quiet=refine_focal,
                                              relative_tol=RELATIVE_TOL, diagonal_damping=True,
-                                             adaptive_lambda=True,
                                              ordering=ordering)
     for k in kf_used:
         T[k] = result.atPose3(X(int(k))).matrix()
