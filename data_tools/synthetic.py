@@ -346,23 +346,37 @@ def _point_box_distance(points, R, centre, half):
 # Textures
 
 
+def _level_part(a: np.ndarray, size: int, k: int) -> np.ndarray:
+    """The part of a (size, size // 2 + 1) rfft-layout array that mip level k keeps: the
+    frequencies below its Nyquist limit, laid out as an rfft of (size >> k, size >> k)."""
+    half = (size >> k) // 2
+    if half >= size // 2:
+        return a
+    return np.concatenate([a[:half, :half + 1], a[size - half:, :half + 1]], axis=0)
+
+
 @lru_cache(maxsize=8)
 def _spectral_filters(size: int, slope: float = _SPECTRAL_SLOPE
                       ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per mip level k, the rfft-layout amplitude filters (size, size // 2 + 1) float32 of the
-    luminance and chroma fields: f^-slope times a Gaussian cut-off at the level's wavelength."""
+    """Per mip level k, the rfft-layout amplitude filters of the luminance and chroma fields
+    (the level's part, :func:`_level_part`, float32): f^-slope times a Gaussian cut-off at the
+    level's wavelength."""
     f, cutoffs = _cutoffs(size)
     power = f ** -slope
     power[0, 0] = 0.0
-    return [((power * broad).astype(np.float32), (power * chroma).astype(np.float32))
-            for broad, chroma in cutoffs]
+    return [((_level_part(power, size, k) * broad).astype(np.float32),
+             (_level_part(power, size, k) * chroma).astype(np.float32))
+            for k, (broad, chroma) in enumerate(cutoffs)]
 
 
-@lru_cache(maxsize=2)
+@lru_cache(maxsize=4)
 def _cutoffs(size: int) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
     """The frequency magnitude (size, size // 2 + 1) float64 (1 at DC) and, per mip level, the
-    Gaussian cut-offs of the luminance and chroma filters: the same for every slope, so the
-    newer presets' materials (one slope each) compute them once per size."""
+    Gaussian cut-offs of the luminance and chroma filters on the level's part
+    (:func:`_level_part`): the same for every slope, so the newer presets' materials (one slope
+    each) compute them once per size. Built on the parts alone: a level needs a quarter of the
+    coefficients of the one below (the full-size arrays made building a texture cost twice as
+    much)."""
     fy = np.fft.fftfreq(size)[:, None]
     fx = np.fft.rfftfreq(size)[None, :]
     f = np.hypot(fx, fy)
@@ -372,7 +386,8 @@ def _cutoffs(size: int) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]
     k = 0
     while size >> k >= _MIN_LEVEL_SIZE:
         fck = fc / 2 ** k
-        out.append((np.exp(-(f / fck) ** 2), np.exp(-(2.0 * f / fck) ** 2)))
+        fk = _level_part(f, size, k)
+        out.append((np.exp(-(fk / fck) ** 2), np.exp(-(2.0 * fk / fck) ** 2)))
         k += 1
     return f, out
 
@@ -409,21 +424,16 @@ class _Texture:
         pattern_fft = None if pattern is None else np.fft.rfft2(pattern).astype(np.complex64)
         for k, (low_broad, low_chroma) in enumerate(filters):
             sk = size >> k
-            half = sk // 2
             fields = []
             for j in range(3):
-                s = noise[j] * (low_broad if j == 0 else low_chroma)
-                if half < size // 2:
-                    s = np.concatenate([s[:half, :half + 1], s[size - half:, :half + 1]], axis=0)
+                s = _level_part(noise[j], size, k) * (low_broad if j == 0 else low_chroma)
                 fields.append(np.fft.irfft2(s, s=(sk, sk)) * np.float32((sk / size) ** 2))
             fields = np.stack(fields, axis=-1)
             if scale is None:   # unit standard deviation of each field at level 0
                 scale = 1.0 / fields.reshape(-1, 3).std(axis=0)
             rgb = base + fields @ (scale[:, None] * mix).astype(np.float32)
             if pattern_fft is not None:
-                s = pattern_fft * _gauss_filters(size)[k]
-                if half < size // 2:
-                    s = np.concatenate([s[:half, :half + 1], s[size - half:, :half + 1]], axis=0)
+                s = _level_part(pattern_fft, size, k) * _gauss_filters(size)[k]
                 pat = np.fft.irfft2(s, s=(sk, sk)) * np.float32((sk / size) ** 2)
                 rgb = rgb + pat[..., None].astype(np.float32) * lum_dir.astype(np.float32)
             packed = np.zeros((sk, sk, 4), dtype=np.uint8)
@@ -432,8 +442,8 @@ class _Texture:
             self.sizes.append(sk)
 
     def _lookup(self, k: int, tu: np.ndarray, tv: np.ndarray) -> np.ndarray:
-        """(4, n) float64 bilinear lookup of level k at level-0 coordinates (n,) float32 in
-        [0, 2**20), channels first (R, G, B, 0)."""
+        """(3, n) float64 bilinear lookup of level k at level-0 coordinates (n,) float32 in
+        [0, 2**20), channels first (R, G, B)."""
         s = self.sizes[k]
         x = tu * np.float32(0.5 ** k)
         y = tv * np.float32(0.5 ** k)
@@ -450,8 +460,8 @@ class _Texture:
         # the n samples rather than across four channels (numpy's inner loop would be 4 long).
         n = tu.shape[0]
         texels = np.take(self.levels[k], np.concatenate([r0 + ix, r0 + ix1, r1 + ix, r1 + ix1]))
-        c = np.empty((4, 4, n))            # (channel, corner, sample)
-        c.reshape(4, 4 * n)[...] = texels.view(np.uint8).reshape(4 * n, 4).T
+        c = np.empty((3, 4, n))            # (channel, corner, sample); the pad byte left out
+        c.reshape(3, 4 * n)[...] = texels.view(np.uint8).reshape(4 * n, 4)[:, :3].T
         c00, c01, c10, c11 = c[:, 0], c[:, 1], c[:, 2], c[:, 3]
         c01 -= c00
         c01 *= wx
@@ -465,7 +475,7 @@ class _Texture:
         return c11
 
     def _trilinear(self, tu: np.ndarray, tv: np.ndarray, level: np.ndarray) -> np.ndarray:
-        """(4, n) lookup between the mip levels floor(level) and floor(level) + 1, channels
+        """(3, n) lookup between the mip levels floor(level) and floor(level) + 1, channels
         first."""
         n_levels = len(self.sizes)
         k0 = level.astype(np.int64)
@@ -475,7 +485,7 @@ class _Texture:
         else:
             groups = [(k, np.flatnonzero(k0 == k)) for k in range(k0.min(initial=0),
                                                                    k0.max(initial=-1) + 1)]
-        out = np.empty((4, tu.shape[0]), dtype=np.float32)
+        out = np.empty((3, tu.shape[0]), dtype=np.float32)
         for k, sel in groups:
             su, sv, w = (tu, tv, frac) if sel is None else (tu[sel], tv[sel], frac[sel])
             if sel is not None and sel.size == 0:
@@ -527,7 +537,7 @@ class _Texture:
         margin = period * np.ceil(2.0 * sigma / period + 1.0)
         tu = (np.mod(tu, period) + margin).astype(np.float32)
         tv = (np.mod(tv, period) + margin).astype(np.float32)
-        out = np.empty((4, tu.shape[0]), dtype=np.float32)   # channels first
+        out = np.empty((3, tu.shape[0]), dtype=np.float32)   # channels first
         for m in np.unique(half_taps):
             sel = np.flatnonzero(half_taps == m)
             if m == 0:
@@ -544,23 +554,23 @@ class _Texture:
             su = (tu[sel][None, :] + off * np.cos(phi).astype(np.float32)[None, :]).ravel()
             sv = (tv[sel][None, :] + off * np.sin(phi).astype(np.float32)[None, :]).ravel()
             lev = np.tile(level[sel], 2 * m + 1)
-            taps = np.empty((su.size, 4), dtype=np.float32)
+            taps = np.empty((su.size, 3), dtype=np.float32)
             for c in range(0, su.size, _CHUNK):   # chunks keep the temporaries in cache
                 taps[c:c + _CHUNK] = self._trilinear(su[c:c + _CHUNK], sv[c:c + _CHUNK],
                                                      lev[c:c + _CHUNK]).T
-            out[:, sel] = np.tensordot(w, taps.reshape(2 * m + 1, sel.size, 4), axes=1).T
-        return out[:3].T
+            out[:, sel] = np.tensordot(w, taps.reshape(2 * m + 1, sel.size, 3), axes=1).T
+        return out.T
 
 
 @lru_cache(maxsize=8)
 def _gauss_filters(size: int) -> list[np.ndarray]:
-    """Per mip level k, the rfft-layout Gaussian cut-off (size, size // 2 + 1) float32 alone
-    (the luminance filter without its f^-slope), for the patterns."""
+    """Per mip level k, the rfft-layout Gaussian cut-off float32 alone (the luminance filter
+    without its f^-slope) on the level's part (:func:`_level_part`), for the patterns."""
     fy = np.fft.fftfreq(size)[:, None]
     fx = np.fft.rfftfreq(size)[None, :]
     f = np.hypot(fx, fy)
     fc = 1.0 / _FINEST_WAVELENGTH_TEXELS
-    return [np.exp(-(f / (fc / 2 ** k)) ** 2).astype(np.float32)
+    return [np.exp(-(_level_part(f, size, k) / (fc / 2 ** k)) ** 2).astype(np.float32)
             for k in range(len(_spectral_filters(size)))]
 
 
