@@ -364,9 +364,11 @@ def _spectral_filters(size: int, slope: float = _SPECTRAL_SLOPE
     f, cutoffs = _cutoffs(size)
     power = f ** -slope
     power[0, 0] = 0.0
-    return [((_level_part(power, size, k) * broad).astype(np.float32),
-             (_level_part(power, size, k) * chroma).astype(np.float32))
-            for k, (broad, chroma) in enumerate(cutoffs)]
+    out = []
+    for k, (broad, chroma) in enumerate(cutoffs):
+        part = _level_part(power, size, k)
+        out.append(((part * broad).astype(np.float32), (part * chroma).astype(np.float32)))
+    return out
 
 
 @lru_cache(maxsize=4)
