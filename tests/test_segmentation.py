@@ -174,3 +174,47 @@ def test_a_small_object_is_cut_at_the_finer_resolution():
     iou = {budget: _iou(GrabCutSegmenter(GrabCutConfig(fine_pixels=budget, dilate_px=0))
                         .segment(img, box), obj) for budget in (0, 28000)}
     assert iou[28000] > 0.98 and iou[28000] > iou[0] + 0.03
+
+
+def test_a_box_inside_anothers_region_is_cut_in_the_same_graph():
+    """A small mover beside a large one, its region inside the large one's: one GrabCut for
+    both (the second was the same pixels again), and the small mover still masked; boxes whose
+    regions only overlap are cut one by one."""
+    img, obj = _scene()
+    img[40:48, 164:172] = (30, 200, 30)               # a small green mover right of the object
+    small_obj = np.zeros((H, W), bool)
+    small_obj[40:48, 164:172] = True
+    motion = np.zeros((H, W), np.float32)
+    motion[obj | small_obj] = 3.0
+    context = FrameContext(0, motion, 1.0, 1.0, np.zeros((0, 2), np.float32), 1.0)
+    calls = []
+
+    class Counting(GrabCutSegmenter):
+        def _graph_cut(self, small, init, roi):
+            calls.append(roi)
+            return super()._graph_cut(small, init, roi)
+
+    seg = Counting(_segmenter().config)
+    labels = np.array([MOTION_LABEL, MOTION_LABEL])
+    inside = Boxes(np.array([[100, 30, 159, 89], [164, 40, 171, 47]], np.float32),
+                   np.array([1.0, 0.5], np.float32), labels)
+    mask = seg.segment(img, inside, context=context)
+    assert len(calls) == 1
+    assert mask[small_obj].mean() > 0.9 and _iou(mask & ~small_obj, obj) > 0.85
+    # The same small box alone: its mask is what the shared cut gave it.
+    calls.clear()
+    alone = seg.segment(img, inside.select(np.array([False, True])), context=context)
+    assert len(calls) == 1 and _iou(alone, small_obj) > 0.8
+    # Moved right, its region reaches past the large one's: cut on its own.
+    img2 = img.copy()
+    img2[40:48, 164:172] = img[40:48, 20:28]
+    img2[40:48, 200:208] = (30, 200, 30)
+    motion2 = np.zeros((H, W), np.float32)
+    motion2[obj] = 3.0
+    motion2[40:48, 200:208] = 3.0
+    context2 = FrameContext(0, motion2, 1.0, 1.0, np.zeros((0, 2), np.float32), 1.0)
+    apart = Boxes(np.array([[100, 30, 159, 89], [170, 40, 207, 47]], np.float32),
+                  np.array([1.0, 0.5], np.float32), labels)
+    calls.clear()
+    seg.segment(img2, apart, context=context2)
+    assert len(calls) == 2
